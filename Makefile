@@ -1,0 +1,42 @@
+# glasscan — the two commands of the README, and helpers.
+#   make demo   build and run the zero-setup demo on a built-in object
+#   make test   build and run the whole test suite
+# Both first make sure the Debian packages the build needs are installed.
+
+DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev clang libclang-dev cmake pkg-config
+CARGO ?= cargo
+
+.PHONY: deps demo test bench clean
+
+# Installs missing Debian packages when run as root; otherwise prints the exact command and stops.
+deps:
+	@missing=""; \
+	for p in $(DEBIAN_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = "0" ]; then \
+	    echo "glasscan: installing$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq$$missing; \
+	  else \
+	    echo "glasscan needs these Debian packages:$$missing"; \
+	    echo "install them with:  sudo apt-get install -y$$missing"; \
+	    exit 1; \
+	  fi; \
+	fi; \
+	command -v $(CARGO) >/dev/null || { echo "glasscan needs Rust >= 1.88 (cargo): install it with rustup, https://rustup.rs"; exit 1; }
+
+demo: deps
+	$(CARGO) run --release -- demo --out demo-out
+
+test: deps
+	$(CARGO) test --release
+
+# Embree throughput on a mesh: make bench MESH=../shared/meshes/pig_scan.ply
+MESH ?= ../shared/meshes/pig_scan.ply
+bench: deps
+	$(CARGO) run --release -- bench trace --mesh $(MESH)
+
+clean:
+	$(CARGO) clean
+	rm -rf demo-out

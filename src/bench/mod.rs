@@ -1,0 +1,3 @@
+//! Benchmarks behind `glasscan bench …`: they measure what they name and print ratios.
+
+pub mod trace;

@@ -1,0 +1,66 @@
+//! The command line: argument definitions (clap) and one small module per subcommand, each a
+//! thin layer over the library.
+
+mod bench;
+mod demo;
+mod eval;
+mod info;
+
+use std::path::Path;
+
+use anyhow::Result;
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
+
+/// Reconstruct the mesh of a solid transparent object from a turntable Gray-code scan.
+#[derive(Parser, Debug)]
+#[command(name = "glasscan", version, about, propagate_version = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Counts, bounding box, genus, edge lengths and the validation verdict of a mesh
+    /// (exit code 1 if the mesh is not a closed, manifold, outward-oriented surface).
+    Info(info::InfoArgs),
+    /// Accuracy, completeness, F-scores, DRT's figure and Hausdorff distance against a reference.
+    Eval(eval::EvalArgs),
+    /// Benchmarks.
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+    /// Zero-setup first run on a built-in object.
+    Demo(demo::DemoArgs),
+}
+
+/// Versions of glasscan and of the native libraries it was built against.
+fn long_version() -> String {
+    format!(
+        "{} (Embree {}, OpenCV {})",
+        env!("CARGO_PKG_VERSION"),
+        crate::trace::embree_version(),
+        opencv::core::get_version_string().unwrap_or_else(|_| "unknown".into())
+    )
+}
+
+/// Parses the command line and runs the chosen subcommand.
+pub fn run() -> Result<()> {
+    let matches = Cli::command().long_version(long_version()).get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    match cli.command {
+        Command::Info(a) => info::run(&a),
+        Command::Eval(a) => eval::run(&a),
+        Command::Bench(b) => bench::run(&b),
+        Command::Demo(a) => demo::run(&a),
+    }
+}
+
+/// Writes `value` as pretty JSON to `path`, atomically.
+fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
+    use anyhow::Context;
+    crate::util::atomic::write_atomic(path, |w| {
+        serde_json::to_writer_pretty(&mut *w, value)?;
+        writeln!(w)
+    })
+    .with_context(|| format!("cannot write {}", path.display()))
+}

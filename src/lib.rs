@@ -1,0 +1,12 @@
+//! glasscan: reconstruct the mesh of a solid transparent object from a turntable scan in front of
+//! a monitor showing Gray-code patterns (differentiable refraction tracing, Lyu et al. 2020).
+//!
+//! Units: millimetres in 3D, pixels in images. The binary (`src/main.rs`) is a thin CLI over
+//! [`cli`]; every stage lives in its own module.
+
+pub mod bench;
+pub mod cli;
+pub mod eval;
+pub mod mesh;
+pub mod trace;
+pub mod util;

@@ -1,0 +1,13 @@
+//! The `glasscan` binary: a thin shell over the library's CLI.
+
+use std::process::ExitCode;
+
+fn main() -> ExitCode {
+    match glasscan::cli::run() {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

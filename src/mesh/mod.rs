@@ -1,0 +1,98 @@
+//! Indexed triangle meshes: the data type, file I/O, validation, statistics, sampling and the
+//! analytic test shapes.
+//!
+//! Positions are in millimetres (f64) in whatever frame the file uses (glasscan: the object /
+//! turntable frame, y up). Faces are counter-clockwise seen from outside, so that the right-hand
+//! normal points out of the object.
+
+pub mod io;
+pub mod sample;
+pub mod shapes;
+pub mod stats;
+pub mod validate;
+
+use nalgebra::{Point3, Vector3};
+
+/// An indexed triangle mesh with f64 positions (mm).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TriMesh {
+    /// Vertex positions, mm.
+    pub positions: Vec<Point3<f64>>,
+    /// Triangles as indices into `positions`, counter-clockwise seen from outside.
+    pub faces: Vec<[u32; 3]>,
+}
+
+impl TriMesh {
+    /// A mesh from positions and faces; the caller guarantees that indices are in range
+    /// (file readers check it and report the offending face).
+    pub fn new(positions: Vec<Point3<f64>>, faces: Vec<[u32; 3]>) -> Self {
+        Self { positions, faces }
+    }
+
+    /// The three corner positions of face `f`.
+    pub fn corners(&self, f: usize) -> [Point3<f64>; 3] {
+        let [a, b, c] = self.faces[f];
+        [
+            self.positions[a as usize],
+            self.positions[b as usize],
+            self.positions[c as usize],
+        ]
+    }
+
+    /// Area-weighted normal of face `f`: (b − a) × (c − a), length = 2 × area (mm²).
+    pub fn face_cross(&self, f: usize) -> Vector3<f64> {
+        let [a, b, c] = self.corners(f);
+        (b - a).cross(&(c - a))
+    }
+
+    /// Area of face `f`, mm².
+    pub fn face_area(&self, f: usize) -> f64 {
+        0.5 * self.face_cross(f).norm()
+    }
+
+    /// Axis-aligned bounding box (min, max) of the vertices, mm; `None` for an empty mesh.
+    pub fn bbox(&self) -> Option<(Point3<f64>, Point3<f64>)> {
+        let first = *self.positions.first()?;
+        Some(
+            self.positions
+                .iter()
+                .fold((first, first), |(lo, hi), p| (lo.inf(p), hi.sup(p))),
+        )
+    }
+
+    /// Length of the bounding-box diagonal, mm (0 for an empty mesh).
+    pub fn bbox_diagonal(&self) -> f64 {
+        self.bbox().map_or(0.0, |(lo, hi)| (hi - lo).norm())
+    }
+
+    /// Total surface area, mm².
+    pub fn area(&self) -> f64 {
+        (0..self.faces.len()).map(|f| self.face_area(f)).sum()
+    }
+
+    /// Signed enclosed volume, mm³ (divergence theorem); positive for a closed, outward-oriented
+    /// mesh.
+    pub fn signed_volume(&self) -> f64 {
+        (0..self.faces.len())
+            .map(|f| {
+                let [a, b, c] = self.corners(f);
+                a.coords.dot(&b.coords.cross(&c.coords)) / 6.0
+            })
+            .sum()
+    }
+
+    /// Vertex positions as packed f32 triples (Embree's vertex buffer format).
+    pub fn positions_f32(&self) -> Vec<f32> {
+        self.positions
+            .iter()
+            .flat_map(|p| [p.x as f32, p.y as f32, p.z as f32])
+            .collect()
+    }
+
+    /// Applies `x ↦ s·x + t` to every vertex (mm).
+    pub fn scale_translate(&mut self, s: f64, t: Vector3<f64>) {
+        for p in &mut self.positions {
+            *p = Point3::from(p.coords * s + t);
+        }
+    }
+}

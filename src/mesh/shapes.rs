@@ -1,0 +1,160 @@
+//! Analytic test shapes (closed, manifold, outward-oriented), centred on the origin, in mm, with
+//! +y as the turntable axis. Tests, benchmarks and the demo build their objects from these.
+
+use std::collections::HashMap;
+
+use nalgebra::{Point3, Vector3};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::TriMesh;
+
+/// A sphere of `radius` mm: an icosahedron subdivided `subdivisions` times (20·4^s faces).
+pub fn icosphere(radius: f64, subdivisions: u32) -> TriMesh {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let mut pos: Vec<Vector3<f64>> = [
+        [-1.0, t, 0.0],
+        [1.0, t, 0.0],
+        [-1.0, -t, 0.0],
+        [1.0, -t, 0.0],
+        [0.0, -1.0, t],
+        [0.0, 1.0, t],
+        [0.0, -1.0, -t],
+        [0.0, 1.0, -t],
+        [t, 0.0, -1.0],
+        [t, 0.0, 1.0],
+        [-t, 0.0, -1.0],
+        [-t, 0.0, 1.0],
+    ]
+    .iter()
+    .map(|p| Vector3::from(*p).normalize())
+    .collect();
+    let mut faces: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..subdivisions {
+        let mut mid: HashMap<(u32, u32), u32> = HashMap::new();
+        let mut midpoint = |a: u32, b: u32, pos: &mut Vec<Vector3<f64>>| {
+            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                pos.push((pos[a as usize] + pos[b as usize]).normalize());
+                pos.len() as u32 - 1
+            })
+        };
+        let mut next = Vec::with_capacity(faces.len() * 4);
+        for [a, b, c] in faces {
+            let ab = midpoint(a, b, &mut pos);
+            let bc = midpoint(b, c, &mut pos);
+            let ca = midpoint(c, a, &mut pos);
+            next.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        faces = next;
+    }
+    TriMesh::new(
+        pos.into_iter().map(|p| Point3::from(p * radius)).collect(),
+        faces,
+    )
+}
+
+/// An ellipsoid with semi-axes `radii` (mm) along x, y, z, tessellated like [`icosphere`].
+pub fn ellipsoid(radii: Vector3<f64>, subdivisions: u32) -> TriMesh {
+    let mut m = icosphere(1.0, subdivisions);
+    for p in &mut m.positions {
+        *p = Point3::from(p.coords.component_mul(&radii));
+    }
+    m
+}
+
+/// A torus around the y axis: tube centre-line radius `major` mm, tube radius `minor` mm,
+/// `n_major` × `n_minor` quads split into triangles. Genus 1.
+pub fn torus(major: f64, minor: f64, n_major: u32, n_minor: u32) -> TriMesh {
+    let mut positions = Vec::with_capacity((n_major * n_minor) as usize);
+    for i in 0..n_major {
+        let u = std::f64::consts::TAU * i as f64 / n_major as f64;
+        for j in 0..n_minor {
+            let v = std::f64::consts::TAU * j as f64 / n_minor as f64;
+            let r = major + minor * v.cos();
+            positions.push(Point3::new(r * u.cos(), minor * v.sin(), r * u.sin()));
+        }
+    }
+    let id = |i: u32, j: u32| (i % n_major) * n_minor + (j % n_minor);
+    let mut faces = Vec::with_capacity(2 * positions.len());
+    for i in 0..n_major {
+        for j in 0..n_minor {
+            let (a, b, c, d) = (id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1));
+            faces.push([a, c, b]);
+            faces.push([a, d, c]);
+        }
+    }
+    TriMesh::new(positions, faces)
+}
+
+/// An axis-aligned box of edge lengths `size` (mm), each side split into `n` × `n` quads.
+pub fn cuboid(size: Vector3<f64>, n: u32) -> TriMesh {
+    let mut index: HashMap<[u32; 3], u32> = HashMap::new();
+    let mut positions = Vec::new();
+    let mut faces = Vec::new();
+    let mut vertex = |g: [u32; 3], positions: &mut Vec<Point3<f64>>| {
+        *index.entry(g).or_insert_with(|| {
+            let p = Vector3::from(g.map(|c| c as f64 / n as f64 - 0.5));
+            positions.push(Point3::from(p.component_mul(&size)));
+            positions.len() as u32 - 1
+        })
+    };
+    // Each side: the fixed axis, its grid coordinate, and the two in-plane axes ordered so that
+    // (a × b) points outward.
+    for axis in 0..3 {
+        for &(fixed, outward) in &[(0u32, false), (n, true)] {
+            let (mut a, mut b) = ((axis + 1) % 3, (axis + 2) % 3);
+            if !outward {
+                std::mem::swap(&mut a, &mut b);
+            }
+            for i in 0..n {
+                for j in 0..n {
+                    let corner = |di: u32, dj: u32| {
+                        let mut g = [0u32; 3];
+                        g[axis] = fixed;
+                        g[a] = i + di;
+                        g[b] = j + dj;
+                        g
+                    };
+                    let v00 = vertex(corner(0, 0), &mut positions);
+                    let v10 = vertex(corner(1, 0), &mut positions);
+                    let v11 = vertex(corner(1, 1), &mut positions);
+                    let v01 = vertex(corner(0, 1), &mut positions);
+                    faces.push([v00, v10, v11]);
+                    faces.push([v00, v11, v01]);
+                }
+            }
+        }
+    }
+    TriMesh::new(positions, faces)
+}
+
+/// Moves every vertex radially (from the origin) by a uniform random factor in
+/// [1 − amplitude, 1 + amplitude]; seeded.
+pub fn perturb_radially(mesh: &mut TriMesh, amplitude: f64, seed: u64) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    for p in &mut mesh.positions {
+        let s = 1.0 + amplitude * (2.0 * rng.random::<f64>() - 1.0);
+        *p = Point3::from(p.coords * s);
+    }
+}

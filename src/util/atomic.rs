@@ -1,0 +1,30 @@
+//! Atomic file output: write to a temporary file in the destination folder, then rename it over
+//! the destination, so a crash never leaves a half-written output behind.
+
+use std::io::{self, BufWriter, Write};
+use std::path::Path;
+
+/// Writes a file atomically: `fill` writes the whole content into a buffered temporary file in
+/// the same folder as `path`, which is then flushed, synced and renamed to `path`. On any error
+/// the temporary file is removed and `path` is left as it was.
+pub fn write_atomic<F>(path: &Path, fill: F) -> io::Result<()>
+where
+    F: FnOnce(&mut dyn Write) -> io::Result<()>,
+{
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let tmp = tempfile::Builder::new()
+        .prefix(".glasscan-")
+        .suffix(".tmp")
+        .tempfile_in(dir)?;
+    {
+        let mut w = BufWriter::new(tmp.as_file());
+        fill(&mut w)?;
+        w.flush()?;
+    }
+    tmp.as_file().sync_all()?;
+    tmp.persist(path).map_err(|e| e.error)?;
+    Ok(())
+}

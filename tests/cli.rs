@@ -1,0 +1,221 @@
+//! The `glasscan` binary as a user runs it: outputs, exit codes and one-line errors.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use glasscan::mesh::io::write_mesh;
+use glasscan::mesh::shapes::icosphere;
+
+fn glasscan(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_glasscan"))
+        .args(args)
+        .output()
+        .expect("run glasscan")
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Asserts a failure with exit code 1, a single `error:` line mentioning `needle`, and no panic.
+fn assert_clean_failure(o: &Output, needle: &str) {
+    let err = stderr(o);
+    assert_eq!(o.status.code(), Some(1), "stderr: {err}");
+    assert!(!err.contains("panicked"), "panic: {err}");
+    let lines: Vec<&str> = err.lines().collect();
+    assert_eq!(lines.len(), 1, "one line expected: {err}");
+    assert!(
+        lines[0].starts_with("error: ") && lines[0].contains(needle),
+        "{err}"
+    );
+}
+
+fn shared_mesh(name: &str) -> PathBuf {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/meshes")
+        .join(name);
+    assert!(
+        p.is_file(),
+        "{} is missing: the tests expect ../shared beside the checkout",
+        p.display()
+    );
+    p
+}
+
+#[test]
+fn info_on_the_pig_reports_a_valid_genus_1_mesh() {
+    let o = glasscan(&["info", shared_mesh("pig_scan.ply").to_str().unwrap()]);
+    let out = stdout(&o);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        out.contains("valid: watertight, manifold, consistently oriented, outward"),
+        "{out}"
+    );
+    assert!(
+        out.lines()
+            .any(|l| l.starts_with("genus") && l.trim_end().ends_with(" 1")),
+        "{out}"
+    );
+    assert!(out.contains("faces            95490"), "{out}");
+}
+
+#[test]
+fn info_names_each_defect() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = icosphere(10.0, 2);
+    let mut open = base.clone();
+    open.faces.pop();
+    let mut flipped = base.clone();
+    flipped.faces[0].swap(0, 1);
+    let mut fin = base.clone();
+    let f = fin.faces[0];
+    fin.positions.push(nalgebra::Point3::new(0.0, 0.0, 0.0));
+    let apex = fin.positions.len() as u32 - 1;
+    // Two faces hanging off the edge f[0]-f[1] into the interior: that edge now has three faces.
+    fin.faces.push([f[0], f[1], apex]);
+    for (name, mesh, needle) in [
+        ("open.ply", &open, "not watertight"),
+        ("flipped.ply", &flipped, "inconsistently oriented"),
+        ("fin.obj", &fin, "not edge-manifold"),
+    ] {
+        let path = dir.path().join(name);
+        write_mesh(&path, mesh).unwrap();
+        let o = glasscan(&["info", path.to_str().unwrap()]);
+        assert_clean_failure(&o, needle);
+        assert!(stderr(&o).contains(name), "{}", stderr(&o));
+        assert!(stdout(&o).contains("INVALID"), "{}", stdout(&o));
+    }
+}
+
+#[test]
+fn bad_files_fail_with_one_line_and_no_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let good = d.join("good.ply");
+    write_mesh(&good, &icosphere(5.0, 2)).unwrap();
+    let bytes = fs::read(&good).unwrap();
+    fs::write(d.join("truncated.ply"), &bytes[..bytes.len() / 2]).unwrap();
+    fs::write(d.join("oob.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n").unwrap();
+    fs::write(d.join("nan.obj"), "v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n").unwrap();
+    let p = |n: &str| d.join(n).to_str().unwrap().to_string();
+    let cases = [
+        (vec!["info".to_string(), p("missing.ply")], "cannot open"),
+        (
+            vec!["info".into(), p("truncated.ply")],
+            "not a readable PLY file",
+        ),
+        (vec!["info".into(), p("oob.obj")], "refers to vertex 3"),
+        (vec!["info".into(), p("nan.obj")], "non-finite coordinate"),
+        (
+            vec![
+                "eval".into(),
+                p("good.ply"),
+                "--reference".into(),
+                p("missing.obj"),
+            ],
+            "cannot open",
+        ),
+        (
+            vec![
+                "eval".into(),
+                p("good.ply"),
+                "--reference".into(),
+                p("good.ply"),
+                "--threshold-mm=0,1".into(),
+            ],
+            "threshold",
+        ),
+    ];
+    for (args, needle) in cases {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        assert_clean_failure(&glasscan(&args), needle);
+    }
+}
+
+#[test]
+fn eval_prints_a_table_and_writes_exactly_the_documented_json_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b, json) = (
+        dir.path().join("a.ply"),
+        dir.path().join("b.obj"),
+        dir.path().join("m.json"),
+    );
+    write_mesh(&a, &icosphere(20.0, 5)).unwrap();
+    write_mesh(&b, &icosphere(20.3, 5)).unwrap();
+    let o = glasscan(&[
+        "eval",
+        a.to_str().unwrap(),
+        "--reference",
+        b.to_str().unwrap(),
+        "--samples",
+        "50000",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("accuracy"), "{}", stdout(&o));
+    let v: serde_json::Value = serde_json::from_str(&fs::read_to_string(&json).unwrap()).unwrap();
+    let mut keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
+    keys.sort();
+    assert_eq!(
+        keys,
+        [
+            "accuracy_mm",
+            "completeness_mm",
+            "drt_mean_mm",
+            "fscore",
+            "hausdorff_mm"
+        ]
+    );
+    let mut f: Vec<&str> = v["fscore"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(String::as_str)
+        .collect();
+    f.sort();
+    assert_eq!(f, ["0.5", "1.0"]);
+    let acc = v["accuracy_mm"].as_f64().unwrap();
+    assert!((acc - 0.3).abs() < 0.01, "accuracy {acc}");
+    assert_eq!(v["fscore"]["0.5"].as_f64().unwrap(), 1.0);
+}
+
+#[test]
+fn bench_trace_runs_and_prints_ratios() {
+    let o = glasscan(&[
+        "bench",
+        "trace",
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--seconds",
+        "0.01",
+    ]);
+    let out = stdout(&o);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for needle in [
+        "camera rays, packets of 8",
+        "inner rays",
+        "ratio packets / one by one",
+        "refit (dynamic)",
+    ] {
+        assert!(out.contains(needle), "missing '{needle}': {out}");
+    }
+}
+
+#[test]
+fn version_names_the_native_libraries() {
+    let o = glasscan(&["--version"]);
+    let out = stdout(&o);
+    assert!(
+        out.contains("Embree 3.") || out.contains("Embree 4."),
+        "{out}"
+    );
+    assert!(out.contains("OpenCV 4."), "{out}");
+}
