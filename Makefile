@@ -6,7 +6,7 @@
 DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev clang libclang-dev cmake pkg-config
 CARGO ?= cargo
 
-.PHONY: deps demo test bench clean
+.PHONY: deps demo test bench bench-remesh clean
 
 # Installs missing Debian packages when run as root; otherwise prints the exact command and stops.
 deps:
@@ -36,6 +36,13 @@ test: deps
 MESH ?= ../shared/meshes/pig_scan.ply
 bench: deps
 	$(CARGO) run --release -- bench trace --mesh $(MESH)
+
+# glasscan's remesher against pymeshlab's (installed by pip into a venv under target/).
+PYMESHLAB_VENV := target/pymeshlab-venv
+bench-remesh: deps
+	@[ -x $(PYMESHLAB_VENV)/bin/python ] && $(PYMESHLAB_VENV)/bin/python -c "import pymeshlab" 2>/dev/null || \
+	  { python3 -m venv $(PYMESHLAB_VENV) && $(PYMESHLAB_VENV)/bin/pip install -q pymeshlab; }
+	$(CARGO) run --release -- bench remesh --meshes $(dir $(MESH)) --python $(PYMESHLAB_VENV)/bin/python --json target/bench-remesh.json
 
 clean:
 	$(CARGO) clean

@@ -374,8 +374,20 @@ static bool closest_callback(struct RTCPointQueryFunctionArguments* args) {
   return false;
 }
 
+static void closest_point(const gs_scene* s, closest_ctx* ctx, float radius) {
+  struct RTCPointQuery q;
+  q.x = (float)ctx->p[0];
+  q.y = (float)ctx->p[1];
+  q.z = (float)ctx->p[2];
+  q.time = 0.0f;
+  q.radius = radius;
+  struct RTCPointQueryContext qc;
+  rtcInitPointQueryContext(&qc);
+  rtcPointQuery(s->scene, &q, &qc, closest_callback, ctx);
+}
+
 int gs_closest_points(const gs_scene* s, const double* verts, const uint32_t* tris,
-                      const double* points, size_t n, gs_closest* out) {
+                      const double* points, size_t n, double radius_hint, gs_closest* out) {
   gs_error[0] = '\0';
   for (size_t i = 0; i < n; i++) {
     closest_ctx ctx;
@@ -384,15 +396,8 @@ int gs_closest_points(const gs_scene* s, const double* verts, const uint32_t* tr
     memcpy(ctx.p, points + 3 * i, sizeof ctx.p);
     ctx.best_d2 = INFINITY;
     ctx.prim = GS_INVALID_ID;
-    struct RTCPointQuery q;
-    q.x = (float)ctx.p[0];
-    q.y = (float)ctx.p[1];
-    q.z = (float)ctx.p[2];
-    q.time = 0.0f;
-    q.radius = INFINITY;
-    struct RTCPointQueryContext qc;
-    rtcInitPointQueryContext(&qc);
-    rtcPointQuery(s->scene, &q, &qc, closest_callback, &ctx);
+    closest_point(s, &ctx, (float)radius_hint);
+    if (ctx.prim == GS_INVALID_ID && isfinite(radius_hint)) closest_point(s, &ctx, INFINITY);
     memcpy(out[i].point, ctx.best, sizeof ctx.best);
     out[i].dist = ctx.prim == GS_INVALID_ID ? INFINITY : sqrt(ctx.best_d2);
     out[i].prim = ctx.prim;

@@ -88,10 +88,12 @@ int gs_intersect(const gs_scene* scene, const gs_ray* rays, gs_hit* hits, size_t
  * Closest surface point to each of `n` query points (3 doubles each). `verts` (3 doubles per
  * vertex) and `tris` must describe the same mesh as the scene, in double precision: Embree's BVH
  * prunes the search, the distances themselves are exact double-precision point-triangle distances.
- * Thread-safe. Returns 0 on success.
+ * `radius_hint` (INFINITY if unknown) bounds the first search; a point with no surface within it
+ * is searched again without bound, so the hint only changes the speed. Thread-safe. Returns 0 on
+ * success.
  */
 int gs_closest_points(const gs_scene* scene, const double* verts, const uint32_t* tris,
-                      const double* points, size_t n, gs_closest* out);
+                      const double* points, size_t n, double radius_hint, gs_closest* out);
 
 #ifdef __cplusplus
 }

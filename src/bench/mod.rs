@@ -1,3 +1,4 @@
 //! Benchmarks behind `glasscan bench …`: they measure what they name and print ratios.
 
+pub mod remesh;
 pub mod trace;

@@ -13,6 +13,28 @@ use crate::mesh::shapes;
 pub enum BenchCommand {
     /// Embree throughput (coherent and incoherent rays, 1 and all threads) and BVH update cost.
     Trace(TraceArgs),
+    /// glasscan's remesher against pymeshlab's on the shared meshes and DRT's schedule.
+    Remesh(RemeshBenchArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct RemeshBenchArgs {
+    /// Folder with the *_scan.ply and *_vh.ply meshes.
+    #[arg(long, default_value = "../shared/meshes")]
+    pub meshes: PathBuf,
+    /// Target edge lengths, mm, comma-separated.
+    #[arg(long = "edge-mm", value_delimiter = ',', default_value = "1,2,5")]
+    pub edges_mm: Vec<f64>,
+    /// A Python interpreter with pymeshlab, to run the same cases through it (`make bench-remesh`
+    /// sets one up); without it only glasscan runs.
+    #[arg(long)]
+    pub python: Option<PathBuf>,
+    /// Folder for both sides' output meshes.
+    #[arg(long, default_value = "target/bench-remesh")]
+    pub work: PathBuf,
+    /// Also write every figure as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -40,6 +62,7 @@ pub struct TraceArgs {
 pub fn run(cmd: &BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace(a) => run_trace(a),
+        BenchCommand::Remesh(a) => run_remesh(a),
     }
 }
 
@@ -131,4 +154,61 @@ pub fn table(r: &TraceBenchReport, width: u32, height: u32) -> String {
         );
     }
     s
+}
+
+fn run_remesh(a: &RemeshBenchArgs) -> Result<()> {
+    use super::remesh::{header, row};
+    use crate::bench::remesh;
+    let cases = remesh::cases(&a.meshes, &a.edges_mm)?;
+    match &a.python {
+        Some(py) => eprintln!(
+            "bench remesh: {} cases, glasscan and pymeshlab ({})",
+            cases.len(),
+            py.display()
+        ),
+        None => eprintln!(
+            "bench remesh: {} cases, glasscan only (pymeshlab not requested: pass --python)",
+            cases.len()
+        ),
+    }
+    print!("{}", header("case / tool"));
+    let mut ratios = Vec::new();
+    let results = remesh::run(&cases, a.python.as_deref(), &a.work, |r| {
+        print!(
+            "{}",
+            row(
+                &format!("{} glasscan", r.case.name),
+                &r.glasscan.quality,
+                Some(&r.glasscan)
+            )
+        );
+        if let Some(p) = &r.pymeshlab {
+            print!(
+                "{}",
+                row(&format!("{} pymeshlab", r.case.name), &p.quality, Some(p))
+            );
+            let ratio = p.seconds / r.glasscan.seconds;
+            println!("{:<28} speed-up ×{ratio:.1}", "");
+            ratios.push(ratio);
+        }
+    })?;
+    if let (Some(min), Some(max)) = (
+        ratios.iter().copied().reduce(f64::min),
+        ratios.iter().copied().reduce(f64::max),
+    ) {
+        let geo = (ratios.iter().map(|r| r.ln()).sum::<f64>() / ratios.len() as f64).exp();
+        println!("speed-up over pymeshlab: min ×{min:.1}, geometric mean ×{geo:.1}, max ×{max:.1}");
+    }
+    if let Some(last) = results.iter().find(|r| r.case.schedule_mm.len() > 1) {
+        println!(
+            "DRT schedule, last stage alone: glasscan {:.2} s{}",
+            last.glasscan_last_stage_s,
+            last.pymeshlab_last_stage_s
+                .map_or(String::new(), |s| format!(", pymeshlab {s:.2} s"))
+        );
+    }
+    if let Some(path) = &a.json {
+        super::write_json(path, &serde_json::to_value(&results)?)?;
+    }
+    Ok(())
 }

@@ -5,6 +5,7 @@ mod bench;
 mod demo;
 mod eval;
 mod info;
+mod remesh;
 
 use std::path::Path;
 
@@ -26,6 +27,8 @@ enum Command {
     Info(info::InfoArgs),
     /// Accuracy, completeness, F-scores, DRT's figure and Hausdorff distance against a reference.
     Eval(eval::EvalArgs),
+    /// Isotropic remeshing to a target edge length.
+    Remesh(remesh::RemeshArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -50,6 +53,7 @@ pub fn run() -> Result<()> {
     match cli.command {
         Command::Info(a) => info::run(&a),
         Command::Eval(a) => eval::run(&a),
+        Command::Remesh(a) => remesh::run(&a),
         Command::Bench(b) => bench::run(&b),
         Command::Demo(a) => demo::run(&a),
     }

@@ -156,3 +156,22 @@ pub fn evaluate(
         samples: options.samples,
     })
 }
+
+/// Distances (mm) from `samples` points drawn uniformly by area on `from` (seeded) to the surface
+/// in `to`.
+pub fn sampled_distances(
+    from: &TriMesh,
+    to: &Scene,
+    samples: usize,
+    seed: u64,
+) -> Result<Vec<f64>, TraceError> {
+    let pts: Vec<Point3<f64>> = sample_surface(from, samples, seed)
+        .into_iter()
+        .map(|(p, _)| p)
+        .collect();
+    Ok(to
+        .closest_points(&pts)?
+        .into_iter()
+        .map(|c| c.dist)
+        .collect())
+}

@@ -5,7 +5,9 @@
 //! turntable frame, y up). Faces are counter-clockwise seen from outside, so that the right-hand
 //! normal points out of the object.
 
+pub mod halfedge;
 pub mod io;
+pub mod remesh;
 pub mod sample;
 pub mod shapes;
 pub mod stats;

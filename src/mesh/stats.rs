@@ -81,3 +81,34 @@ pub fn angles(mesh: &TriMesh) -> AngleStats {
         below_30_share: below as f64 / mesh.faces.len().max(1) as f64,
     }
 }
+
+/// Share of the referenced vertices with exactly six incident edges (0..1).
+pub fn valence6_share(mesh: &TriMesh) -> f64 {
+    let mut valence = vec![0u32; mesh.positions.len()];
+    for [a, b] in unique_edges(mesh) {
+        valence[a as usize] += 1;
+        valence[b as usize] += 1;
+    }
+    let used: Vec<u32> = valence.into_iter().filter(|&v| v > 0).collect();
+    used.iter().filter(|&&v| v == 6).count() as f64 / used.len().max(1) as f64
+}
+
+/// The triangle-quality figures remeshing is judged by.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct MeshQuality {
+    pub faces: usize,
+    pub edges: LengthStats,
+    pub angles: AngleStats,
+    /// Share of vertices of valence 6 (0..1).
+    pub valence6_share: f64,
+}
+
+/// Faces, edge lengths, angles and valences of `mesh`.
+pub fn quality(mesh: &TriMesh) -> MeshQuality {
+    MeshQuality {
+        faces: mesh.faces.len(),
+        edges: edge_lengths(mesh),
+        angles: angles(mesh),
+        valence6_share: valence6_share(mesh),
+    }
+}

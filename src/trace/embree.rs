@@ -327,6 +327,16 @@ impl Scene {
 
     /// Exact closest surface points to `points` (mm), in parallel on the current rayon pool.
     pub fn closest_points(&self, points: &[Point3<f64>]) -> Result<Vec<ClosestPoint>, TraceError> {
+        self.closest_points_near(points, f64::INFINITY)
+    }
+
+    /// As [`Self::closest_points`], faster when most points lie within `radius_hint` (mm) of the
+    /// surface; the result does not depend on the hint.
+    pub fn closest_points_near(
+        &self,
+        points: &[Point3<f64>],
+        radius_hint: f64,
+    ) -> Result<Vec<ClosestPoint>, TraceError> {
         let mut out = vec![
             ClosestPoint {
                 point: Point3::origin(),
@@ -350,6 +360,7 @@ impl Scene {
                         self.tris.as_ptr(),
                         flat.as_ptr(),
                         p.len(),
+                        radius_hint,
                         raw.as_mut_ptr(),
                     )
                 };

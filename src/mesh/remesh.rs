@@ -1,0 +1,465 @@
+//! Isotropic remeshing (Botsch & Kobbelt 2004, as in pmp-library's `uniform_remeshing` and CGAL's
+//! `isotropic_remeshing`), in-house.
+//!
+//! Each iteration: split every edge longer than 4/3·h at its midpoint; collapse every edge shorter
+//! than 4/5·h whose collapse keeps the mesh manifold (link condition), flips no triangle and
+//! creates no edge longer than 4/3·h; flip edges where that brings the four vertices' valences
+//! closer to 6; then a few passes of tangential relaxation (each vertex moves, within its tangent
+//! plane, to the area-weighted centroid of its incident triangles' centroids, as CGAL does) and a
+//! projection onto the input surface (closest point through Embree's BVH on the input; the normal
+//! there is interpolated from the input's vertex normals and defines the next tangent plane). h is the target edge length in mm:
+//! one value (uniform), or a per-vertex field from the input's curvature (adaptive).
+//! The output is closed, manifold and outward-oriented like the input, with the same genus.
+
+use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
+
+use super::halfedge::HalfEdgeMesh;
+use super::validate::{validate, Defect, InvalidMesh};
+use super::TriMesh;
+use crate::trace::{BuildMode, Device, Scene, TraceError};
+
+/// Settings of [`remesh`].
+#[derive(Clone, Debug)]
+pub struct RemeshOptions {
+    /// Target edge length h, mm (the largest target in adaptive mode).
+    pub edge_mm: f64,
+    /// Split–collapse–flip–relax iterations (pmp and CGAL default to 10; DRT used 3).
+    pub iterations: usize,
+    /// Tangential relaxation passes per iteration (each iteration ends with one projection).
+    pub relax_passes: usize,
+    /// Curvature-adaptive sizing instead of a uniform h.
+    pub adaptive: Option<AdaptiveSizing>,
+}
+
+impl RemeshOptions {
+    /// Uniform remeshing to edge length `edge_mm` with the default iterations.
+    pub fn uniform(edge_mm: f64) -> Self {
+        Self {
+            edge_mm,
+            iterations: 10,
+            relax_passes: 3,
+            adaptive: None,
+        }
+    }
+}
+
+/// Curvature-adaptive target edge lengths: h = sqrt(6ε/κ − 3ε²) (the edge length whose chord
+/// deviates by ε from a circle of curvature κ), clamped to [min_edge_mm, edge_mm].
+#[derive(Clone, Copy, Debug)]
+pub struct AdaptiveSizing {
+    /// Smallest target edge length, mm.
+    pub min_edge_mm: f64,
+    /// Largest allowed chord deviation ε from the input surface, mm.
+    pub max_error_mm: f64,
+}
+
+/// Why a mesh could not be remeshed.
+#[derive(Debug, thiserror::Error)]
+pub enum RemeshError {
+    #[error("the input mesh cannot be remeshed: {0}")]
+    Invalid(InvalidMesh),
+    #[error("{0}")]
+    BadSetting(String),
+    #[error(transparent)]
+    Trace(#[from] TraceError),
+}
+
+/// Remeshes `input` (closed, manifold, oriented; degenerate faces are allowed and removed).
+pub fn remesh(input: &TriMesh, opts: &RemeshOptions) -> Result<TriMesh, RemeshError> {
+    let report = validate(input);
+    let fatal: Vec<Defect> = report
+        .defects
+        .into_iter()
+        .filter(|d| !matches!(d, Defect::Degenerate { .. }))
+        .collect();
+    if !fatal.is_empty() {
+        return Err(RemeshError::Invalid(InvalidMesh(fatal)));
+    }
+    check_settings(input, opts)?;
+    let device = Device::new()?;
+    let reference = Reference::new(&device, input, opts)?;
+    let mut r = Remesher::new(input, &reference);
+    for _ in 0..opts.iterations {
+        r.split_long_edges();
+        r.collapse_short_edges();
+        r.flip_edges();
+        r.compact();
+        for _ in 0..opts.relax_passes {
+            r.relax();
+        }
+        r.project()?;
+    }
+    Ok(r.mesh.to_trimesh())
+}
+
+fn check_settings(input: &TriMesh, opts: &RemeshOptions) -> Result<(), RemeshError> {
+    let bad = |m: String| Err(RemeshError::BadSetting(m));
+    let diag = input.bbox_diagonal();
+    let h = opts.edge_mm;
+    if !(h.is_finite() && h > 0.0) {
+        return bad(format!(
+            "edge length {h} mm: it must be a positive number of mm"
+        ));
+    }
+    if h > diag {
+        return bad(format!(
+            "edge length {h} mm is larger than the mesh (bounding-box diagonal {diag:.3} mm)"
+        ));
+    }
+    // An equilateral triangle of side h has area √3/4·h²; keep the output below 50 M faces.
+    let min_h = opts.adaptive.map_or(h, |a| a.min_edge_mm.min(h));
+    let faces = input.area() / (3f64.sqrt() / 4.0 * min_h * min_h);
+    if faces > 5e7 {
+        return bad(format!(
+            "edge length {min_h} mm would give about {faces:.0} faces; use at least {:.4} mm",
+            min_h * (faces / 5e7).sqrt()
+        ));
+    }
+    if let Some(a) = opts.adaptive {
+        if !(a.min_edge_mm > 0.0 && a.min_edge_mm <= h && a.max_error_mm > 0.0) {
+            return bad(format!(
+                "adaptive sizing needs 0 < min edge ({} mm) <= edge ({h} mm) and a positive error ({} mm)",
+                a.min_edge_mm, a.max_error_mm
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The input surface: a BVH for closest points, vertex normals and target edge lengths to
+/// interpolate there.
+struct Reference<'a> {
+    mesh: &'a TriMesh,
+    scene: Scene,
+    normals: Vec<Vector3<f64>>,
+    /// Target edge length at each input vertex, mm.
+    sizing: Vec<f64>,
+    /// The largest target edge length, mm.
+    max_target: f64,
+}
+
+impl<'a> Reference<'a> {
+    fn new(
+        device: &std::sync::Arc<Device>,
+        mesh: &'a TriMesh,
+        opts: &RemeshOptions,
+    ) -> Result<Self, TraceError> {
+        let scene = Scene::new(device, mesh, BuildMode::Static)?;
+        let normals = vertex_normals(mesh);
+        let sizing = match opts.adaptive {
+            None => vec![opts.edge_mm; mesh.positions.len()],
+            Some(a) => curvature_sizing(mesh, &normals, opts.edge_mm, a),
+        };
+        Ok(Self {
+            mesh,
+            scene,
+            normals,
+            sizing,
+            max_target: opts.edge_mm,
+        })
+    }
+
+    /// Interpolates per-vertex `values` of the input at point `q` on face `f`.
+    fn interpolate<T>(&self, values: &[T], f: u32, q: &Point3<f64>) -> T
+    where
+        T: Copy + std::ops::Mul<f64, Output = T> + std::ops::Add<Output = T>,
+    {
+        let [a, b, c] = self.mesh.faces[f as usize].map(|v| v as usize);
+        let w = barycentric(q, &self.mesh.corners(f as usize));
+        values[a] * w[0] + values[b] * w[1] + values[c] * w[2]
+    }
+}
+
+/// Area-weighted vertex normals (unit; zero for a vertex whose faces all have zero area).
+fn vertex_normals(mesh: &TriMesh) -> Vec<Vector3<f64>> {
+    let mut n = vec![Vector3::zeros(); mesh.positions.len()];
+    for (f, t) in mesh.faces.iter().enumerate() {
+        let c = mesh.face_cross(f);
+        for &v in t {
+            n[v as usize] += c;
+        }
+    }
+    n.into_iter()
+        .map(|v| v.try_normalize(0.0).unwrap_or_else(Vector3::zeros))
+        .collect()
+}
+
+/// Per-vertex target edge lengths from the largest normal curvature along the vertex's edges,
+/// κ ≈ |n_a − n_b| / |p_a − p_b|.
+fn curvature_sizing(
+    mesh: &TriMesh,
+    normals: &[Vector3<f64>],
+    h_max: f64,
+    a: AdaptiveSizing,
+) -> Vec<f64> {
+    let mut kappa = vec![0.0f64; mesh.positions.len()];
+    for [u, v] in super::stats::unique_edges(mesh) {
+        let (u, v) = (u as usize, v as usize);
+        let len = (mesh.positions[u] - mesh.positions[v]).norm();
+        if len > 0.0 {
+            let k = (normals[u] - normals[v]).norm() / len;
+            kappa[u] = kappa[u].max(k);
+            kappa[v] = kappa[v].max(k);
+        }
+    }
+    let e = a.max_error_mm;
+    kappa
+        .into_iter()
+        .map(|k| {
+            let h = if k > 0.0 {
+                (6.0 * e / k - 3.0 * e * e).max(0.0).sqrt()
+            } else {
+                h_max
+            };
+            h.clamp(a.min_edge_mm, h_max)
+        })
+        .collect()
+}
+
+/// Barycentric coordinates of `q` (on or near the triangle) in `t`, clamped to the triangle.
+fn barycentric(q: &Point3<f64>, t: &[Point3<f64>; 3]) -> [f64; 3] {
+    let (v0, v1, v2) = (t[1] - t[0], t[2] - t[0], q - t[0]);
+    let (d00, d01, d11) = (v0.dot(&v0), v0.dot(&v1), v1.dot(&v1));
+    let (d20, d21) = (v2.dot(&v0), v2.dot(&v1));
+    let den = d00 * d11 - d01 * d01;
+    if den.is_nan() || den <= 0.0 {
+        return [1.0 / 3.0; 3];
+    }
+    let v = ((d11 * d20 - d01 * d21) / den).clamp(0.0, 1.0);
+    let w = ((d00 * d21 - d01 * d20) / den).clamp(0.0, 1.0 - v);
+    [1.0 - v - w, v, w]
+}
+
+/// The mesh being remeshed, with a normal and a target edge length per vertex slot.
+struct Remesher<'r, 'a> {
+    mesh: HalfEdgeMesh,
+    normal: Vec<Vector3<f64>>,
+    target: Vec<f64>,
+    reference: &'r Reference<'a>,
+    stamp: Vec<u32>,
+}
+
+impl<'r, 'a> Remesher<'r, 'a> {
+    fn new(input: &TriMesh, reference: &'r Reference<'a>) -> Self {
+        Self {
+            mesh: HalfEdgeMesh::from_trimesh(input),
+            normal: reference.normals.clone(),
+            target: reference.sizing.clone(),
+            reference,
+            stamp: Vec::new(),
+        }
+    }
+
+    /// Target length of the edge between `a` and `b`, mm.
+    fn edge_target(&self, a: u32, b: u32) -> f64 {
+        0.5 * (self.target[a as usize] + self.target[b as usize])
+    }
+
+    /// Up to 10 passes, each over the edges that exist at its start (as pmp-library does): on
+    /// nearly collinear input triangles, splitting can create cross edges as long as the split
+    /// one, so an open-ended loop might never finish.
+    fn split_long_edges(&mut self) {
+        for _pass in 0..10 {
+            let mut split_any = false;
+            for e in 0..self.mesh.edge_slots() as u32 {
+                if !self.mesh.edge_removed(e) {
+                    let [a, b] = self.mesh.edge_vertices(e);
+                    if self.mesh.edge_length(e) > 4.0 / 3.0 * self.edge_target(a, b) {
+                        let (pa, pb) = (self.mesh.pos[a as usize], self.mesh.pos[b as usize]);
+                        self.mesh
+                            .split(e, Point3::from((pa.coords + pb.coords) / 2.0));
+                        let n = self.normal[a as usize] + self.normal[b as usize];
+                        self.normal
+                            .push(n.try_normalize(0.0).unwrap_or(self.normal[a as usize]));
+                        self.target.push(self.edge_target(a, b));
+                        split_any = true;
+                    }
+                }
+            }
+            if !split_any {
+                break;
+            }
+        }
+    }
+
+    fn collapse_short_edges(&mut self) {
+        for e in 0..self.mesh.edge_slots() as u32 {
+            if self.mesh.edge_removed(e) {
+                continue;
+            }
+            let [v0, v1] = self.mesh.edge_vertices(e);
+            if self.mesh.edge_length(e) >= 4.0 / 5.0 * self.edge_target(v0, v1) {
+                continue;
+            }
+            let (h01, h10) = (2 * e, 2 * e + 1);
+            let ok01 = self.collapse_ok(h01);
+            let ok10 = self.collapse_ok(h10);
+            // Both possible: remove the vertex of lower valence (as pmp-library does).
+            let h = match (ok01, ok10) {
+                (true, true) => {
+                    if self.mesh.valence(v0) < self.mesh.valence(v1) {
+                        h01
+                    } else {
+                        h10
+                    }
+                }
+                (true, false) => h01,
+                (false, true) => h10,
+                (false, false) => continue,
+            };
+            self.mesh.collapse(h);
+        }
+    }
+
+    /// Topology (link condition) and geometry: moving `from(h)` onto `to(h)` must create no edge
+    /// longer than 4/3 of its target and turn no remaining triangle over.
+    fn collapse_ok(&mut self, h: u32) -> bool {
+        let m = &self.mesh;
+        let (v0, v1) = (m.from(h), m.to(h));
+        let p1 = m.pos[v1 as usize];
+        let (f0, f1) = (m.face(h), m.face(h ^ 1));
+        let mut ok = true;
+        m.for_each_outgoing(v0, |g| {
+            if !ok {
+                return;
+            }
+            let w = m.to(g);
+            if w != v1 && (m.pos[w as usize] - p1).norm() > 4.0 / 3.0 * self.edge_target(v1, w) {
+                ok = false;
+                return;
+            }
+            let f = m.face(g);
+            if f == f0 || f == f1 {
+                return;
+            }
+            // Face (v0, w, x) with v0 moved to p1.
+            let x = m.to(m.next(g));
+            let (pw, px) = (m.pos[w as usize], m.pos[x as usize]);
+            let old = m.face_cross(f);
+            let new = (pw - p1).cross(&(px - p1));
+            if old.norm_squared() > 0.0 && (new.dot(&old) <= 0.0 || new.norm_squared() == 0.0) {
+                ok = false;
+            }
+        });
+        ok && self.mesh.is_collapse_ok(h, &mut self.stamp)
+    }
+
+    fn flip_edges(&mut self) {
+        let mut valence: Vec<i32> = (0..self.mesh.vertex_slots() as u32)
+            .map(|v| {
+                if self.mesh.vertex_removed(v) {
+                    0
+                } else {
+                    self.mesh.valence(v) as i32
+                }
+            })
+            .collect();
+        let dev = |v: i32| (v - 6) * (v - 6);
+        for e in 0..self.mesh.edge_slots() as u32 {
+            if self.mesh.edge_removed(e) {
+                continue;
+            }
+            let m = &self.mesh;
+            let (h0, h1) = (2 * e, 2 * e + 1);
+            let [a, b, c, d] =
+                [m.from(h0), m.to(h0), m.to(m.next(h0)), m.to(m.next(h1))].map(|v| v as usize);
+            let before = dev(valence[a]) + dev(valence[b]) + dev(valence[c]) + dev(valence[d]);
+            let after = dev(valence[a] - 1)
+                + dev(valence[b] - 1)
+                + dev(valence[c] + 1)
+                + dev(valence[d] + 1);
+            if after < before && self.flip_geometry_ok(e) && self.mesh.is_flip_ok(e) {
+                self.mesh.flip(e);
+                valence[a] -= 1;
+                valence[b] -= 1;
+                valence[c] += 1;
+                valence[d] += 1;
+            }
+        }
+    }
+
+    /// Both triangles after flipping edge `e` face the same way as the pair before.
+    fn flip_geometry_ok(&self, e: u32) -> bool {
+        let m = &self.mesh;
+        let (h0, h1) = (2 * e, 2 * e + 1);
+        let [a, b, c, d] =
+            [m.from(h0), m.to(h0), m.to(m.next(h0)), m.to(m.next(h1))].map(|v| m.pos[v as usize]);
+        let old = m.face_cross(m.face(h0)) + m.face_cross(m.face(h1));
+        let n1 = (c - d).cross(&(a - d));
+        let n2 = (d - c).cross(&(b - c));
+        n1.dot(&old) > 0.0 && n2.dot(&old) > 0.0
+    }
+
+    /// One pass of tangential relaxation towards the area-weighted centroid of the incident
+    /// triangles' centroids.
+    fn relax(&mut self) {
+        let m = &self.mesh;
+        let normal = &self.normal;
+        let moved: Vec<Point3<f64>> = (0..m.vertex_slots() as u32)
+            .into_par_iter()
+            .map(|v| {
+                let p = m.pos[v as usize];
+                if m.vertex_removed(v) {
+                    return p;
+                }
+                let (mut sum, mut weight) = (Vector3::zeros(), 0.0);
+                m.for_each_outgoing(v, |h| {
+                    let f = m.face(h);
+                    let [a, b, c] = m.face_vertices(f).map(|x| m.pos[x as usize].coords);
+                    let area = m.face_cross(f).norm();
+                    sum += (a + b + c) * (area / 3.0);
+                    weight += area;
+                });
+                if weight.is_nan() || weight <= 0.0 {
+                    return p;
+                }
+                let n = normal[v as usize];
+                let u = sum / weight - p.coords;
+                p + (u - n * n.dot(&u))
+            })
+            .collect();
+        self.mesh.pos = moved;
+    }
+
+    /// Moves every vertex to its closest point on the input; takes the input's interpolated
+    /// normal and target length there.
+    fn project(&mut self) -> Result<(), TraceError> {
+        let closest = self
+            .reference
+            .scene
+            .closest_points_near(&self.mesh.pos, 2.0 * self.reference.max_target)?;
+        for (v, c) in closest.iter().enumerate() {
+            if self.mesh.vertex_removed(v as u32) || c.prim == u32::MAX {
+                continue;
+            }
+            self.mesh.pos[v] = c.point;
+            let n: Vector3<f64> =
+                self.reference
+                    .interpolate(&self.reference.normals, c.prim, &c.point);
+            if let Some(n) = n.try_normalize(0.0) {
+                self.normal[v] = n;
+            }
+            self.target[v] = self
+                .reference
+                .interpolate(&self.reference.sizing, c.prim, &c.point);
+        }
+        Ok(())
+    }
+
+    /// Drops removed elements (vertex ids change; per-vertex data follow).
+    fn compact(&mut self) {
+        let map = self.mesh.garbage_collect();
+        self.normal = keep_mapped(&self.normal, &map);
+        self.target = keep_mapped(&self.target, &map);
+    }
+}
+
+/// The entries of `data` whose slot survives in `map` (see [`HalfEdgeMesh::garbage_collect`]).
+fn keep_mapped<T: Copy>(data: &[T], map: &[u32]) -> Vec<T> {
+    data.iter()
+        .zip(map)
+        .filter(|(_, &m)| m != u32::MAX)
+        .map(|(d, _)| *d)
+        .collect()
+}
