@@ -219,3 +219,45 @@ fn version_names_the_native_libraries() {
     );
     assert!(out.contains("OpenCV 4."), "{out}");
 }
+
+#[test]
+fn remesh_writes_a_valid_mesh_and_refuses_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let sphere = d.join("sphere.ply");
+    write_mesh(&sphere, &icosphere(10.0, 3)).unwrap();
+    let out = d.join("out.obj");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let o = glasscan(&["remesh", &s(&sphere), "-o", &s(&out), "--edge-mm", "0.8"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for needle in ["input", "output", "val6 %", "dist mean"] {
+        assert!(stdout(&o).contains(needle), "{}", stdout(&o));
+    }
+    let info = glasscan(&["info", &s(&out)]);
+    assert!(info.status.success(), "{}", stderr(&info));
+
+    let mut open = icosphere(10.0, 2);
+    open.faces.pop();
+    let open_path = d.join("open.ply");
+    write_mesh(&open_path, &open).unwrap();
+    let mut fin = icosphere(10.0, 2);
+    let f = fin.faces[0];
+    fin.positions.push(nalgebra::Point3::new(0.0, 0.0, 0.0));
+    fin.faces.push([f[0], f[1], fin.positions.len() as u32 - 1]);
+    let fin_path = d.join("fin.ply");
+    write_mesh(&fin_path, &fin).unwrap();
+    for (args, needle) in [
+        (vec![s(&open_path), "--edge-mm".into(), "1".into()], "not watertight"),
+        (vec![s(&fin_path), "--edge-mm".into(), "1".into()], "not edge-manifold"),
+        (vec![s(&sphere), "--edge-mm".into(), "0".into()], "positive number"),
+        (vec![s(&sphere), "--edge-mm=-2".into()], "positive number"),
+        (vec![s(&sphere), "--edge-mm".into(), "500".into()], "larger than the mesh"),
+    ] {
+        let mut full = vec!["remesh".to_string()];
+        full.extend(args);
+        full.extend(["-o".to_string(), s(&d.join("never.ply"))]);
+        let full: Vec<&str> = full.iter().map(String::as_str).collect();
+        assert_clean_failure(&glasscan(&full), needle);
+    }
+    assert!(!d.join("never.ply").exists());
+}

@@ -232,3 +232,42 @@ fn bad_input_is_refused() {
     let e = remesh(&sphere, &RemeshOptions::uniform(1e-5)).unwrap_err();
     assert!(e.to_string().contains("faces"), "{e}");
 }
+
+#[test]
+fn feature_lines_keep_a_box_sharp() {
+    let size = Vector3::new(20.0, 10.0, 15.0);
+    let input = cuboid(size, 3);
+    let device = Device::new().unwrap();
+    let scene = Scene::new(&device, &input, BuildMode::Static).unwrap();
+    let max_distance = |m: &TriMesh| {
+        sampled_distances(m, &scene, 50_000, 2)
+            .unwrap()
+            .into_iter()
+            .fold(0.0, f64::max)
+    };
+
+    let plain = remesh(&input, &RemeshOptions::uniform(1.0)).unwrap();
+    let opts = RemeshOptions {
+        feature_angle_deg: Some(45.0),
+        ..RemeshOptions::uniform(1.0)
+    };
+    let sharp = remesh(&input, &opts).unwrap();
+    let r = validate(&sharp);
+    assert!(r.is_valid(), "{:?}", r.defects);
+    for k in 0..8 {
+        let corner = Point3::from(
+            Vector3::from_fn(|i, _| if k >> i & 1 == 1 { 0.5 } else { -0.5 }).component_mul(&size),
+        );
+        assert!(
+            sharp.positions.iter().any(|p| (p - corner).norm() < 1e-9),
+            "corner {corner:?} lost"
+        );
+    }
+    let (d_plain, d_sharp) = (max_distance(&plain), max_distance(&sharp));
+    assert!(
+        d_sharp < 1e-6 && d_plain > 0.05,
+        "max distance to the box: {d_sharp} with features, {d_plain} without"
+    );
+    let e = glasscan::mesh::stats::edge_lengths(&sharp);
+    assert!((0.8..1.2).contains(&e.mean_mm), "{e:?}");
+}

@@ -36,6 +36,10 @@ pub struct RemeshArgs {
     /// Largest chord deviation from the input with --adaptive, mm; default edge-mm / 50.
     #[arg(long = "max-error-mm", requires = "adaptive")]
     pub max_error_mm: Option<f64>,
+    /// Keep sharp edges whose faces meet at more than this dihedral angle, degrees (off by
+    /// default).
+    #[arg(long = "feature-angle")]
+    pub feature_angle_deg: Option<f64>,
     /// Seed of the surface sampling that measures the distance to the input.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -52,6 +56,7 @@ pub fn run(a: &RemeshArgs) -> Result<()> {
         iterations: a.iterations,
         relax_passes: a.relax_passes,
         adaptive,
+        feature_angle_deg: a.feature_angle_deg,
     };
     let t0 = Instant::now();
     let output = remesh(&input, &opts)?;

@@ -15,6 +15,32 @@ use super::TriMesh;
 
 const NONE: u32 = u32::MAX;
 
+/// New ids after [`HalfEdgeMesh::garbage_collect`], indexed by old id; `u32::MAX` for removed.
+pub struct Compaction {
+    pub vertices: Vec<u32>,
+    pub edges: Vec<u32>,
+}
+
+impl Compaction {
+    /// The entries of per-vertex `data` that survive, in their new order.
+    pub fn vertex_data<T: Copy>(&self, data: &[T]) -> Vec<T> {
+        keep_mapped(data, &self.vertices)
+    }
+
+    /// The entries of per-edge `data` that survive, in their new order.
+    pub fn edge_data<T: Copy>(&self, data: &[T]) -> Vec<T> {
+        keep_mapped(data, &self.edges)
+    }
+}
+
+fn keep_mapped<T: Copy>(data: &[T], map: &[u32]) -> Vec<T> {
+    data.iter()
+        .zip(map)
+        .filter(|(_, &m)| m != NONE)
+        .map(|(d, _)| *d)
+        .collect()
+}
+
 /// A closed triangle mesh in half-edge form.
 #[derive(Clone, Debug)]
 pub struct HalfEdgeMesh {
@@ -94,9 +120,9 @@ impl HalfEdgeMesh {
         TriMesh::new(positions, faces)
     }
 
-    /// Drops removed elements, renumbering the rest in order. Returns, per old vertex slot, its
-    /// new id (`u32::MAX` for a removed vertex), so that per-vertex data can follow.
-    pub fn garbage_collect(&mut self) -> Vec<u32> {
+    /// Drops removed elements, renumbering the rest in order. Returns, per old vertex slot and
+    /// per old edge slot, the new id (`u32::MAX` for a removed one), so that data can follow.
+    pub fn garbage_collect(&mut self) -> Compaction {
         fn renumber(removed: &[bool]) -> (Vec<u32>, usize) {
             let mut map = vec![NONE; removed.len()];
             let mut n = 0;
@@ -146,7 +172,10 @@ impl HalfEdgeMesh {
             e_removed: vec![false; ne],
             f_removed: vec![false; nf],
         };
-        vmap
+        Compaction {
+            vertices: vmap,
+            edges: emap,
+        }
     }
 
     /// Number of edge slots (live or removed).
@@ -249,9 +278,10 @@ impl HalfEdgeMesh {
         n.try_normalize(0.0).unwrap_or_else(Vector3::zeros)
     }
 
-    /// Splits edge `e` at `p` (mm): the edge's two triangles become four around a new vertex,
-    /// which is returned. Always valid on a closed mesh.
-    pub fn split(&mut self, e: u32, p: Point3<f64>) -> u32 {
+    /// Splits edge `e` at `p` (mm): the edge's two triangles become four around a new vertex.
+    /// Returns the new vertex and the edge that continues `e` beyond it (`e` keeps the first
+    /// half). Always valid on a closed mesh.
+    pub fn split(&mut self, e: u32, p: Point3<f64>) -> (u32, u32) {
         let (h0, h1) = (2 * e, 2 * e + 1);
         let (h0n, h1n) = (self.next(h0), self.next(h1));
         let (h0p, h1p) = (self.next(h0n), self.next(h1n));
@@ -276,7 +306,7 @@ impl HalfEdgeMesh {
         if self.v_out[b as usize] == h1 {
             self.v_out[b as usize] = hbm;
         }
-        m
+        (m, hmb / 2)
     }
 
     /// Can edge `e` be flipped without breaking the topology: its new end points are not yet
@@ -338,8 +368,9 @@ impl HalfEdgeMesh {
     }
 
     /// Collapses half-edge `h` (v0 → v1): v0 and the edge's two triangles disappear, v1 keeps its
-    /// position. Check [`Self::is_collapse_ok`] first.
-    pub fn collapse(&mut self, h: u32) {
+    /// position. In each of the two triangles, two edges merge into one: returned as
+    /// (removed edge, edge that replaces it) pairs. Check [`Self::is_collapse_ok`] first.
+    pub fn collapse(&mut self, h: u32) -> [(u32, u32); 2] {
         let o = h ^ 1;
         let (v0, v1) = (self.from(h), self.to(h));
         let (hn, on) = (self.next(h), self.next(o));
@@ -371,6 +402,7 @@ impl HalfEdgeMesh {
         for g in [h, hn, op] {
             self.e_removed[(g / 2) as usize] = true;
         }
+        [(hn / 2, hp / 2), (op / 2, on / 2)]
     }
 
     /// Puts half-edge `new` in the place of `old` in `old`'s face.

@@ -24,10 +24,10 @@ use crate::util::atomic::write_atomic;
 /// Why a mesh file could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum MeshIoError {
-    #[error("cannot open {path}: {source}")]
-    Open { path: PathBuf, source: io::Error },
-    #[error("cannot write {path}: {source}")]
-    Write { path: PathBuf, source: io::Error },
+    #[error("cannot open {path}: {cause}")]
+    Open { path: PathBuf, cause: io::Error },
+    #[error("cannot write {path}: {cause}")]
+    Write { path: PathBuf, cause: io::Error },
     #[error("{path}: unknown mesh format '{ext}' (use .ply or .obj)")]
     UnknownFormat { path: PathBuf, ext: String },
     #[error("{path}: not a readable {format} file: {msg}")]
@@ -117,9 +117,9 @@ pub fn write_mesh_as(path: &Path, mesh: &TriMesh, format: MeshFormat) -> Result<
         MeshFormat::PlyAscii => write_ply(w, mesh, Encoding::Ascii),
         MeshFormat::Obj => write_obj(w, mesh),
     });
-    result.map_err(|source| MeshIoError::Write {
+    result.map_err(|cause| MeshIoError::Write {
         path: path.into(),
-        source,
+        cause,
     })
 }
 
@@ -262,9 +262,9 @@ impl PropertyAccess for PlyFace {
 }
 
 fn read_ply(path: &Path) -> Result<RawMesh, MeshIoError> {
-    let file = File::open(path).map_err(|source| MeshIoError::Open {
+    let file = File::open(path).map_err(|cause| MeshIoError::Open {
         path: path.into(),
-        source,
+        cause,
     })?;
     // ply-rs-bw's messages may span lines; keep ours to one.
     let parse_err = |e: &dyn std::fmt::Display| MeshIoError::Parse {
@@ -416,9 +416,9 @@ impl Write for WriteAdapter<'_> {
 /// relative indices, `v/vt/vn` forms); other statements (normals, texture coordinates, groups,
 /// materials) are ignored. In-house because `tobj` reads positions as f32 and renumbers vertices.
 fn read_obj(path: &Path) -> Result<RawMesh, MeshIoError> {
-    let file = File::open(path).map_err(|source| MeshIoError::Open {
+    let file = File::open(path).map_err(|cause| MeshIoError::Open {
         path: path.into(),
-        source,
+        cause,
     })?;
     let parse_err = |line: usize, msg: String| MeshIoError::Parse {
         path: path.into(),

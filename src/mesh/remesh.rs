@@ -30,6 +30,11 @@ pub struct RemeshOptions {
     pub relax_passes: usize,
     /// Curvature-adaptive sizing instead of a uniform h.
     pub adaptive: Option<AdaptiveSizing>,
+    /// Keep the input's sharp edges: edges whose faces meet at a dihedral angle above this
+    /// (degrees) become feature lines that are never flipped, are split and collapsed only along
+    /// themselves, and along which their vertices relax; where other than two feature edges meet,
+    /// the vertex is a corner and stays put. `None` (the default, as in DRT): no features.
+    pub feature_angle_deg: Option<f64>,
 }
 
 impl RemeshOptions {
@@ -40,6 +45,7 @@ impl RemeshOptions {
             iterations: 10,
             relax_passes: 3,
             adaptive: None,
+            feature_angle_deg: None,
         }
     }
 }
@@ -79,7 +85,7 @@ pub fn remesh(input: &TriMesh, opts: &RemeshOptions) -> Result<TriMesh, RemeshEr
     check_settings(input, opts)?;
     let device = Device::new()?;
     let reference = Reference::new(&device, input, opts)?;
-    let mut r = Remesher::new(input, &reference);
+    let mut r = Remesher::new(input, &reference, opts.feature_angle_deg);
     for _ in 0..opts.iterations {
         r.split_long_edges();
         r.collapse_short_edges();
@@ -115,6 +121,11 @@ fn check_settings(input: &TriMesh, opts: &RemeshOptions) -> Result<(), RemeshErr
             "edge length {min_h} mm would give about {faces:.0} faces; use at least {:.4} mm",
             min_h * (faces / 5e7).sqrt()
         ));
+    }
+    if let Some(f) = opts.feature_angle_deg {
+        if !(0.0..180.0).contains(&f) {
+            return bad(format!("feature angle {f}°: it must lie in [0, 180)"));
+        }
     }
     if let Some(a) = opts.adaptive {
         if !(a.min_edge_mm > 0.0 && a.min_edge_mm <= h && a.max_error_mm > 0.0) {
@@ -231,24 +242,64 @@ fn barycentric(q: &Point3<f64>, t: &[Point3<f64>; 3]) -> [f64; 3] {
     [1.0 - v - w, v, w]
 }
 
-/// The mesh being remeshed, with a normal and a target edge length per vertex slot.
+/// The mesh being remeshed, with per-vertex normals, target edge lengths and feature counts, and
+/// per-edge feature flags.
 struct Remesher<'r, 'a> {
     mesh: HalfEdgeMesh,
     normal: Vec<Vector3<f64>>,
     target: Vec<f64>,
+    /// Feature edges at each vertex: 0 free, 2 on a feature line, anything else a fixed corner.
+    crease: Vec<u8>,
+    /// Per edge slot: is it a feature edge?
+    feature: Vec<bool>,
     reference: &'r Reference<'a>,
     stamp: Vec<u32>,
 }
 
 impl<'r, 'a> Remesher<'r, 'a> {
-    fn new(input: &TriMesh, reference: &'r Reference<'a>) -> Self {
-        Self {
-            mesh: HalfEdgeMesh::from_trimesh(input),
+    fn new(input: &TriMesh, reference: &'r Reference<'a>, feature_angle_deg: Option<f64>) -> Self {
+        let mesh = HalfEdgeMesh::from_trimesh(input);
+        let feature = match feature_angle_deg {
+            None => vec![false; mesh.edge_slots()],
+            Some(deg) => {
+                let cos_max = deg.to_radians().cos();
+                (0..mesh.edge_slots() as u32)
+                    .map(|e| {
+                        let n0 = mesh.face_cross(mesh.face(2 * e)).try_normalize(0.0);
+                        let n1 = mesh.face_cross(mesh.face(2 * e + 1)).try_normalize(0.0);
+                        matches!((n0, n1), (Some(a), Some(b)) if a.dot(&b) < cos_max)
+                    })
+                    .collect()
+            }
+        };
+        let mut r = Self {
             normal: reference.normals.clone(),
             target: reference.sizing.clone(),
+            crease: Vec::new(),
+            feature,
+            mesh,
             reference,
             stamp: Vec::new(),
+        };
+        r.count_creases();
+        r
+    }
+
+    /// Recomputes the per-vertex feature-edge counts from the edge flags.
+    fn count_creases(&mut self) {
+        self.crease = vec![0; self.mesh.vertex_slots()];
+        for e in 0..self.mesh.edge_slots() as u32 {
+            if self.feature[e as usize] && !self.mesh.edge_removed(e) {
+                for v in self.mesh.edge_vertices(e) {
+                    self.crease[v as usize] = self.crease[v as usize].saturating_add(1);
+                }
+            }
         }
+    }
+
+    /// Corners (vertices where other than two feature edges meet) never move.
+    fn is_corner(&self, v: u32) -> bool {
+        !matches!(self.crease[v as usize], 0 | 2)
     }
 
     /// Target length of the edge between `a` and `b`, mm.
@@ -267,8 +318,14 @@ impl<'r, 'a> Remesher<'r, 'a> {
                     let [a, b] = self.mesh.edge_vertices(e);
                     if self.mesh.edge_length(e) > 4.0 / 3.0 * self.edge_target(a, b) {
                         let (pa, pb) = (self.mesh.pos[a as usize], self.mesh.pos[b as usize]);
-                        self.mesh
+                        let (_, half) = self
+                            .mesh
                             .split(e, Point3::from((pa.coords + pb.coords) / 2.0));
+                        // Three new edges: the second half of e, then two across.
+                        let on_feature = self.feature[e as usize];
+                        self.feature.resize(self.mesh.edge_slots(), false);
+                        self.feature[half as usize] = on_feature;
+                        self.crease.push(if on_feature { 2 } else { 0 });
                         let n = self.normal[a as usize] + self.normal[b as usize];
                         self.normal
                             .push(n.try_normalize(0.0).unwrap_or(self.normal[a as usize]));
@@ -308,15 +365,25 @@ impl<'r, 'a> Remesher<'r, 'a> {
                 (false, true) => h10,
                 (false, false) => continue,
             };
-            self.mesh.collapse(h);
+            for (removed, kept) in self.mesh.collapse(h) {
+                self.feature[kept as usize] |= self.feature[removed as usize];
+            }
         }
+        self.count_creases();
     }
 
-    /// Topology (link condition) and geometry: moving `from(h)` onto `to(h)` must create no edge
-    /// longer than 4/3 of its target and turn no remaining triangle over.
+    /// Features, topology (link condition) and geometry: moving `from(h)` onto `to(h)` must keep
+    /// feature lines, create no edge longer than 4/3 of its target and turn no remaining triangle
+    /// over.
     fn collapse_ok(&mut self, h: u32) -> bool {
         let m = &self.mesh;
         let (v0, v1) = (m.from(h), m.to(h));
+        // A vertex on a feature line may only slide along it; corners stay.
+        match self.crease[v0 as usize] {
+            0 => {}
+            2 if self.feature[(h / 2) as usize] => {}
+            _ => return false,
+        }
         let p1 = m.pos[v1 as usize];
         let (f0, f1) = (m.face(h), m.face(h ^ 1));
         let mut ok = true;
@@ -369,7 +436,11 @@ impl<'r, 'a> Remesher<'r, 'a> {
                 + dev(valence[b] - 1)
                 + dev(valence[c] + 1)
                 + dev(valence[d] + 1);
-            if after < before && self.flip_geometry_ok(e) && self.mesh.is_flip_ok(e) {
+            if after < before
+                && !self.feature[e as usize]
+                && self.flip_geometry_ok(e)
+                && self.mesh.is_flip_ok(e)
+            {
                 self.mesh.flip(e);
                 valence[a] -= 1;
                 valence[b] -= 1;
@@ -400,8 +471,11 @@ impl<'r, 'a> Remesher<'r, 'a> {
             .into_par_iter()
             .map(|v| {
                 let p = m.pos[v as usize];
-                if m.vertex_removed(v) {
+                if m.vertex_removed(v) || self.is_corner(v) {
                     return p;
+                }
+                if self.crease[v as usize] == 2 {
+                    return self.slide_along_feature(v);
                 }
                 let (mut sum, mut weight) = (Vector3::zeros(), 0.0);
                 m.for_each_outgoing(v, |h| {
@@ -422,15 +496,34 @@ impl<'r, 'a> Remesher<'r, 'a> {
         self.mesh.pos = moved;
     }
 
-    /// Moves every vertex to its closest point on the input; takes the input's interpolated
-    /// normal and target length there.
+    /// A vertex on a feature line moves along the line towards the midpoint of its two feature
+    /// neighbours.
+    fn slide_along_feature(&self, v: u32) -> Point3<f64> {
+        let m = &self.mesh;
+        let mut ends = Vec::with_capacity(2);
+        m.for_each_outgoing(v, |h| {
+            if self.feature[(h / 2) as usize] {
+                ends.push(m.pos[m.to(h) as usize]);
+            }
+        });
+        let p = m.pos[v as usize];
+        let (a, b) = (ends[0], ends[1]);
+        match (b - a).try_normalize(0.0) {
+            Some(d) => p + d * d.dot(&(Point3::from((a.coords + b.coords) / 2.0) - p)),
+            None => p,
+        }
+    }
+
+    /// Moves every vertex but the corners to its closest point on the input; takes the input's
+    /// interpolated normal and target length there.
     fn project(&mut self) -> Result<(), TraceError> {
         let closest = self
             .reference
             .scene
             .closest_points_near(&self.mesh.pos, 2.0 * self.reference.max_target)?;
         for (v, c) in closest.iter().enumerate() {
-            if self.mesh.vertex_removed(v as u32) || c.prim == u32::MAX {
+            if self.mesh.vertex_removed(v as u32) || self.is_corner(v as u32) || c.prim == u32::MAX
+            {
                 continue;
             }
             self.mesh.pos[v] = c.point;
@@ -450,16 +543,9 @@ impl<'r, 'a> Remesher<'r, 'a> {
     /// Drops removed elements (vertex ids change; per-vertex data follow).
     fn compact(&mut self) {
         let map = self.mesh.garbage_collect();
-        self.normal = keep_mapped(&self.normal, &map);
-        self.target = keep_mapped(&self.target, &map);
+        self.normal = map.vertex_data(&self.normal);
+        self.target = map.vertex_data(&self.target);
+        self.crease = map.vertex_data(&self.crease);
+        self.feature = map.edge_data(&self.feature);
     }
-}
-
-/// The entries of `data` whose slot survives in `map` (see [`HalfEdgeMesh::garbage_collect`]).
-fn keep_mapped<T: Copy>(data: &[T], map: &[u32]) -> Vec<T> {
-    data.iter()
-        .zip(map)
-        .filter(|(_, &m)| m != u32::MAX)
-        .map(|(d, _)| *d)
-        .collect()
 }
