@@ -247,11 +247,23 @@ fn remesh_writes_a_valid_mesh_and_refuses_bad_input() {
     let fin_path = d.join("fin.ply");
     write_mesh(&fin_path, &fin).unwrap();
     for (args, needle) in [
-        (vec![s(&open_path), "--edge-mm".into(), "1".into()], "not watertight"),
-        (vec![s(&fin_path), "--edge-mm".into(), "1".into()], "not edge-manifold"),
-        (vec![s(&sphere), "--edge-mm".into(), "0".into()], "positive number"),
+        (
+            vec![s(&open_path), "--edge-mm".into(), "1".into()],
+            "not watertight",
+        ),
+        (
+            vec![s(&fin_path), "--edge-mm".into(), "1".into()],
+            "not edge-manifold",
+        ),
+        (
+            vec![s(&sphere), "--edge-mm".into(), "0".into()],
+            "positive number",
+        ),
         (vec![s(&sphere), "--edge-mm=-2".into()], "positive number"),
-        (vec![s(&sphere), "--edge-mm".into(), "500".into()], "larger than the mesh"),
+        (
+            vec![s(&sphere), "--edge-mm".into(), "500".into()],
+            "larger than the mesh",
+        ),
     ] {
         let mut full = vec!["remesh".to_string()];
         full.extend(args);

@@ -96,6 +96,7 @@ pub fn remesh(input: &TriMesh, opts: &RemeshOptions) -> Result<TriMesh, RemeshEr
         }
         r.project()?;
     }
+    r.improve_angles();
     Ok(r.mesh.to_trimesh())
 }
 
@@ -446,6 +447,47 @@ impl<'r, 'a> Remesher<'r, 'a> {
                 valence[b] -= 1;
                 valence[c] += 1;
                 valence[d] += 1;
+            }
+        }
+    }
+
+    /// Final clean-up: flip the edges of badly shaped triangles (smallest angle below 30°) where
+    /// that raises the smallest angle of the pair and the pair is nearly flat (dihedral below
+    /// 30°), so the surface does not change shape. Vertices do not move.
+    fn improve_angles(&mut self) {
+        let min_angle = |p: [Point3<f64>; 3]| -> f64 {
+            (0..3)
+                .map(|k| (p[(k + 1) % 3] - p[k]).angle(&(p[(k + 2) % 3] - p[k])))
+                .fold(f64::INFINITY, f64::min)
+        };
+        let bad = 30f64.to_radians();
+        let flat = 30f64.to_radians().cos();
+        for _sweep in 0..2 {
+            for e in 0..self.mesh.edge_slots() as u32 {
+                if self.mesh.edge_removed(e) || self.feature[e as usize] {
+                    continue;
+                }
+                let m = &self.mesh;
+                let (h0, h1) = (2 * e, 2 * e + 1);
+                let [a, b, c, d] = [m.from(h0), m.to(h0), m.to(m.next(h0)), m.to(m.next(h1))]
+                    .map(|v| m.pos[v as usize]);
+                let before = min_angle([a, b, c]).min(min_angle([b, a, d]));
+                if before >= bad {
+                    continue;
+                }
+                let (n0, n1) = (m.face_cross(m.face(h0)), m.face_cross(m.face(h1)));
+                let dihedral_ok = match (n0.try_normalize(0.0), n1.try_normalize(0.0)) {
+                    (Some(x), Some(y)) => x.dot(&y) > flat,
+                    _ => true,
+                };
+                let after = min_angle([d, c, a]).min(min_angle([c, d, b]));
+                if dihedral_ok
+                    && after > before
+                    && self.flip_geometry_ok(e)
+                    && self.mesh.is_flip_ok(e)
+                {
+                    self.mesh.flip(e);
+                }
             }
         }
     }
