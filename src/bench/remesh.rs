@@ -124,7 +124,7 @@ pub fn run(
     cases: &[Case],
     python: Option<&Path>,
     work: &Path,
-    mut progress: impl FnMut(&CaseResult),
+    mut progress: impl FnMut(&CaseResult) -> Result<()>,
 ) -> Result<Vec<CaseResult>> {
     let pml = match python {
         Some(py) => Some(run_pymeshlab(py, cases, work)?),
@@ -174,7 +174,7 @@ pub fn run(
             pymeshlab,
             pymeshlab_last_stage_s,
         };
-        progress(&result);
+        progress(&result)?;
         results.push(result);
     }
     Ok(results)

@@ -83,7 +83,7 @@ fn run_trace(a: &TraceArgs) -> Result<()> {
     };
     eprintln!("bench trace: {name}, {} faces ...", mesh.faces.len());
     let report = trace::run(&mesh, &opts)?;
-    print!("{}", table(&report, a.width, a.height));
+    out!("{}", table(&report, a.width, a.height));
     if let Some(path) = &a.json {
         super::write_json(path, &serde_json::to_value(&report)?)?;
     }
@@ -171,10 +171,10 @@ fn run_remesh(a: &RemeshBenchArgs) -> Result<()> {
             cases.len()
         ),
     }
-    print!("{}", header("case / tool"));
+    out!("{}", header("case / tool"));
     let mut ratios = Vec::new();
     let results = remesh::run(&cases, a.python.as_deref(), &a.work, |r| {
-        print!(
+        out!(
             "{}",
             row(
                 &format!("{} glasscan", r.case.name),
@@ -183,24 +183,25 @@ fn run_remesh(a: &RemeshBenchArgs) -> Result<()> {
             )
         );
         if let Some(p) = &r.pymeshlab {
-            print!(
+            out!(
                 "{}",
                 row(&format!("{} pymeshlab", r.case.name), &p.quality, Some(p))
             );
             let ratio = p.seconds / r.glasscan.seconds;
-            println!("{:<28} speed-up ×{ratio:.1}", "");
+            outln!("{:<28} speed-up ×{ratio:.1}", "");
             ratios.push(ratio);
         }
+        Ok(())
     })?;
     if let (Some(min), Some(max)) = (
         ratios.iter().copied().reduce(f64::min),
         ratios.iter().copied().reduce(f64::max),
     ) {
         let geo = (ratios.iter().map(|r| r.ln()).sum::<f64>() / ratios.len() as f64).exp();
-        println!("speed-up over pymeshlab: min ×{min:.1}, geometric mean ×{geo:.1}, max ×{max:.1}");
+        outln!("speed-up over pymeshlab: min ×{min:.1}, geometric mean ×{geo:.1}, max ×{max:.1}");
     }
     if let Some(last) = results.iter().find(|r| r.case.schedule_mm.len() > 1) {
-        println!(
+        outln!(
             "DRT schedule, last stage alone: glasscan {:.2} s{}",
             last.glasscan_last_stage_s,
             last.pymeshlab_last_stage_s

@@ -31,18 +31,18 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
     let radii = Vector3::new(40.0, 30.0, 25.0);
 
-    println!("== 1. a built-in object: an ellipsoidal pebble, semi-axes 40 × 30 × 25 mm");
+    outln!("== 1. a built-in object: an ellipsoidal pebble, semi-axes 40 × 30 × 25 mm");
     let object_path = args.out.join("object.ply");
     write_mesh(&object_path, &ellipsoid(radii, 6))?;
     let object = read_mesh(&object_path)?;
     let report = ensure_valid(&object).context("the built-in object is invalid")?;
-    print!("{}", super::info::describe(&object_path, &object, &report));
+    out!("{}", super::info::describe(&object_path, &object, &report));
 
-    println!("\n== 2. evaluation: a 16× coarser tessellation of the same pebble against it");
+    outln!("\n== 2. evaluation: a 16× coarser tessellation of the same pebble against it");
     let coarse_path = args.out.join("coarse.obj");
     write_mesh(&coarse_path, &ellipsoid(radii, 4))?;
     let coarse = read_mesh(&coarse_path)?;
-    println!(
+    outln!(
         "coarse           {} ({} faces, {})",
         coarse_path.display(),
         coarse.faces.len(),
@@ -58,22 +58,22 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         ..Default::default()
     };
     let metrics = evaluate(&coarse, &object, &eval_opts)?;
-    print!("{}", super::eval::table(&metrics, args.seed));
+    out!("{}", super::eval::table(&metrics, args.seed));
     super::write_json(&args.out.join("eval.json"), &metrics.to_json())?;
 
-    println!("\n== 3. ray tracing throughput on the pebble");
+    outln!("\n== 3. ray tracing throughput on the pebble");
     let bench_opts = TraceBenchOptions {
         min_seconds: 0.5,
         seed: args.seed,
         ..Default::default()
     };
     let bench = trace_bench::run(&object, &bench_opts)?;
-    print!(
+    out!(
         "{}",
         super::bench::table(&bench, bench_opts.width, bench_opts.height)
     );
 
-    println!(
+    outln!(
         "\ndemo done in {:.1} s; files in {}: object.ply, coarse.obj, eval.json",
         t0.elapsed().as_secs_f64(),
         args.out.display()

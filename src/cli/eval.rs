@@ -52,17 +52,17 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         seed: args.seed,
     };
     let report = evaluate(&result, &reference, &options)?;
-    println!(
+    outln!(
         "result           {} ({} faces)",
         args.result.display(),
         result.faces.len()
     );
-    println!(
+    outln!(
         "reference        {} ({} faces)",
         args.reference.display(),
         reference.faces.len()
     );
-    print!("{}", table(&report, args.seed));
+    out!("{}", table(&report, args.seed));
     if let Some(path) = &args.json {
         super::write_json(path, &report.to_json())?;
     }

@@ -18,7 +18,7 @@ pub struct InfoArgs {
 pub fn run(args: &InfoArgs) -> Result<()> {
     let mesh = read_mesh(&args.mesh)?;
     let report = validate(&mesh);
-    print!("{}", describe(&args.mesh, &mesh, &report));
+    out!("{}", describe(&args.mesh, &mesh, &report));
     if report.is_valid() {
         Ok(())
     } else {

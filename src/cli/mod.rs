@@ -1,6 +1,23 @@
 //! The command line: argument definitions (clap) and one small module per subcommand, each a
 //! thin layer over the library.
 
+/// `print!` that reports a failed write (a closed pipe, a full disk) as an error instead of
+/// panicking.
+macro_rules! out {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        write!(std::io::stdout().lock(), $($arg)*)?;
+    }};
+}
+
+/// `println!` counterpart of [`out!`].
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout().lock(), $($arg)*)?;
+    }};
+}
+
 mod bench;
 mod demo;
 mod eval;
@@ -44,6 +61,14 @@ fn long_version() -> String {
         crate::trace::embree_version(),
         opencv::core::get_version_string().unwrap_or_else(|_| "unknown".into())
     )
+}
+
+/// True when `e` is a write to a closed pipe (`glasscan … | head`): not worth reporting.
+pub fn is_broken_pipe(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
+    })
 }
 
 /// Parses the command line and runs the chosen subcommand.

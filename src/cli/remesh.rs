@@ -63,7 +63,7 @@ pub fn run(a: &RemeshArgs) -> Result<()> {
     let seconds = t0.elapsed().as_secs_f64();
     write_mesh(&a.output, &output)?;
     let fig = figures(&input, &output, seconds, a.seed)?;
-    println!(
+    outln!(
         "remeshed {} -> {} (h = {} mm{}, {} iterations) in {seconds:.2} s",
         a.input.display(),
         a.output.display(),
@@ -71,7 +71,7 @@ pub fn run(a: &RemeshArgs) -> Result<()> {
         if a.adaptive { ", adaptive" } else { "" },
         a.iterations
     );
-    print!(
+    out!(
         "{}{}{}",
         header(""),
         row("input", &quality(&input), None),

@@ -455,38 +455,55 @@ impl<'r, 'a> Remesher<'r, 'a> {
     /// that raises the smallest angle of the pair and the pair is nearly flat (dihedral below
     /// 30°), so the surface does not change shape. Vertices do not move.
     fn improve_angles(&mut self) {
-        let min_angle = |p: [Point3<f64>; 3]| -> f64 {
+        // Compared through the cosine of the smallest angle (larger cosine: worse triangle).
+        let worst_cos = |p: [Point3<f64>; 3]| -> f64 {
             (0..3)
-                .map(|k| (p[(k + 1) % 3] - p[k]).angle(&(p[(k + 2) % 3] - p[k])))
-                .fold(f64::INFINITY, f64::min)
+                .map(|k| {
+                    let (u, v) = (p[(k + 1) % 3] - p[k], p[(k + 2) % 3] - p[k]);
+                    u.dot(&v) / (u.norm() * v.norm())
+                })
+                .fold(f64::NEG_INFINITY, f64::max)
         };
-        let bad = 30f64.to_radians();
+        let bad = 30f64.to_radians().cos();
         let flat = 30f64.to_radians().cos();
         for _sweep in 0..2 {
+            let m = &self.mesh;
+            let mut bad_face: Vec<bool> = (0..m.face_slots() as u32)
+                .into_par_iter()
+                .map(|f| {
+                    !m.face_removed(f)
+                        && !(worst_cos(m.face_vertices(f).map(|v| m.pos[v as usize])) < bad)
+                })
+                .collect();
             for e in 0..self.mesh.edge_slots() as u32 {
-                if self.mesh.edge_removed(e) || self.feature[e as usize] {
-                    continue;
-                }
                 let m = &self.mesh;
                 let (h0, h1) = (2 * e, 2 * e + 1);
-                let [a, b, c, d] = [m.from(h0), m.to(h0), m.to(m.next(h0)), m.to(m.next(h1))]
-                    .map(|v| m.pos[v as usize]);
-                let before = min_angle([a, b, c]).min(min_angle([b, a, d]));
-                if before >= bad {
+                let (f0, f1) = (m.face(h0), m.face(h1));
+                if m.edge_removed(e)
+                    || self.feature[e as usize]
+                    || !(bad_face[f0 as usize] || bad_face[f1 as usize])
+                {
                     continue;
                 }
-                let (n0, n1) = (m.face_cross(m.face(h0)), m.face_cross(m.face(h1)));
-                let dihedral_ok = match (n0.try_normalize(0.0), n1.try_normalize(0.0)) {
+                let [a, b, c, d] = [m.from(h0), m.to(h0), m.to(m.next(h0)), m.to(m.next(h1))]
+                    .map(|v| m.pos[v as usize]);
+                let before = worst_cos([a, b, c]).max(worst_cos([b, a, d]));
+                let after = worst_cos([d, c, a]).max(worst_cos([c, d, b]));
+                let dihedral_ok = match (
+                    m.face_cross(f0).try_normalize(0.0),
+                    m.face_cross(f1).try_normalize(0.0),
+                ) {
                     (Some(x), Some(y)) => x.dot(&y) > flat,
                     _ => true,
                 };
-                let after = min_angle([d, c, a]).min(min_angle([c, d, b]));
                 if dihedral_ok
-                    && after > before
+                    && after < before
                     && self.flip_geometry_ok(e)
                     && self.mesh.is_flip_ok(e)
                 {
                     self.mesh.flip(e);
+                    bad_face[f0 as usize] = !(worst_cos([d, c, a]) < bad);
+                    bad_face[f1 as usize] = !(worst_cos([c, d, b]) < bad);
                 }
             }
         }
