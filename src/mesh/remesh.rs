@@ -464,15 +464,17 @@ impl<'r, 'a> Remesher<'r, 'a> {
                 })
                 .fold(f64::NEG_INFINITY, f64::max)
         };
-        let bad = 30f64.to_radians().cos();
-        let flat = 30f64.to_radians().cos();
+        let cos30 = 30f64.to_radians().cos();
+        let is_bad = |p: [Point3<f64>; 3]| {
+            let c = worst_cos(p);
+            c.is_nan() || c >= cos30
+        };
         for _sweep in 0..2 {
             let m = &self.mesh;
             let mut bad_face: Vec<bool> = (0..m.face_slots() as u32)
                 .into_par_iter()
                 .map(|f| {
-                    !m.face_removed(f)
-                        && !(worst_cos(m.face_vertices(f).map(|v| m.pos[v as usize])) < bad)
+                    !m.face_removed(f) && is_bad(m.face_vertices(f).map(|v| m.pos[v as usize]))
                 })
                 .collect();
             for e in 0..self.mesh.edge_slots() as u32 {
@@ -493,7 +495,7 @@ impl<'r, 'a> Remesher<'r, 'a> {
                     m.face_cross(f0).try_normalize(0.0),
                     m.face_cross(f1).try_normalize(0.0),
                 ) {
-                    (Some(x), Some(y)) => x.dot(&y) > flat,
+                    (Some(x), Some(y)) => x.dot(&y) > cos30,
                     _ => true,
                 };
                 if dihedral_ok
@@ -502,8 +504,8 @@ impl<'r, 'a> Remesher<'r, 'a> {
                     && self.mesh.is_flip_ok(e)
                 {
                     self.mesh.flip(e);
-                    bad_face[f0 as usize] = !(worst_cos([d, c, a]) < bad);
-                    bad_face[f1 as usize] = !(worst_cos([c, d, b]) < bad);
+                    bad_face[f0 as usize] = is_bad([d, c, a]);
+                    bad_face[f1 as usize] = is_bad([c, d, b]);
                 }
             }
         }
