@@ -1,0 +1,211 @@
+//! Refraction paths through a closed surface: a camera ray enters the object, refracts at every
+//! interface (Snell, f64), possibly leaves and re-enters, and finally leaves towards the monitor.
+//!
+//! Rays are traced in batches, one interface at a time for the whole batch (so that Embree sees
+//! many rays per call). Which side of the surface a hit is on comes from the geometric normal;
+//! after each interface the new ray starts from the hit point recomputed in f64 and moved by the
+//! surface's offset along the new direction, an offset proportional to the object's size (never a
+//! fixed constant, so it holds from 1 mm to 10 m objects).
+
+use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
+
+use super::refract::{refract, IOR_AIR};
+use super::{BuildMode, Device, Ray, Scene, TraceError};
+use crate::mesh::TriMesh;
+
+/// Where a ray meets a surface.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceHit {
+    /// Point, in the ray's frame (mm).
+    pub point: Point3<f64>,
+    /// Unit outward normal of the surface element (flat triangle normal for a mesh).
+    pub geometric_normal: Vector3<f64>,
+    /// Unit outward normal used for refraction (interpolated, or the geometric one).
+    pub shading_normal: Vector3<f64>,
+}
+
+/// A closed, outward-oriented surface that rays can be traced against.
+pub trait Surface: Sync {
+    /// The first hit of each ray (`out` is as long as `rays`).
+    fn intersect(&self, rays: &[Ray], out: &mut [Option<SurfaceHit>]) -> Result<(), TraceError>;
+    /// How far a ray restarting at a hit point is moved along its new direction (mm).
+    fn offset(&self) -> f64;
+}
+
+/// Which normal refraction uses on a mesh.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum NormalModel {
+    /// The flat triangle normal (DRT).
+    Face,
+    /// Area-weighted vertex normals, interpolated with the hit's barycentrics.
+    Vertex,
+}
+
+/// A triangle mesh as a [`Surface`], through Embree.
+pub struct MeshSurface {
+    scene: Scene,
+    mesh: TriMesh,
+    vertex_normals: Option<Vec<Vector3<f64>>>,
+    offset: f64,
+}
+
+impl MeshSurface {
+    /// `mesh` must be closed and outward-oriented (see [`crate::mesh::validate`]).
+    pub fn new(mesh: &TriMesh, normals: NormalModel) -> Result<Self, TraceError> {
+        let device = Device::new()?;
+        let scene = Scene::new(&device, mesh, BuildMode::Static)?;
+        let vertex_normals = (normals == NormalModel::Vertex).then(|| {
+            let mut n = vec![Vector3::zeros(); mesh.positions.len()];
+            for (f, t) in mesh.faces.iter().enumerate() {
+                let c = mesh.face_cross(f);
+                for &v in t {
+                    n[v as usize] += c;
+                }
+            }
+            n.into_iter().map(|v| v.try_normalize(0.0).unwrap_or_else(Vector3::zeros)).collect()
+        });
+        // Embree works in f32: a restarting ray must clear the float error of the surface, which
+        // scales with the coordinates' magnitude, and stay well below any real thickness.
+        let (lo, hi) = mesh.bbox().expect("a mesh with vertices");
+        let extent = (hi - lo).norm().max(lo.coords.amax()).max(hi.coords.amax());
+        Ok(Self { scene, mesh: mesh.clone(), vertex_normals, offset: 1e-6 * extent })
+    }
+}
+
+impl Surface for MeshSurface {
+    fn intersect(&self, rays: &[Ray], out: &mut [Option<SurfaceHit>]) -> Result<(), TraceError> {
+        let hits = self.scene.intersect(rays, false)?;
+        for (o, h) in out.iter_mut().zip(hits) {
+            *o = h.map(|h| {
+                let [a, b, c] = self.mesh.corners(h.prim as usize);
+                let w = 1.0 - h.u - h.v;
+                let point = Point3::from(a.coords * w + b.coords * h.u + c.coords * h.v);
+                let geometric_normal = self.mesh.face_cross(h.prim as usize).normalize();
+                let shading_normal = match &self.vertex_normals {
+                    None => geometric_normal,
+                    Some(n) => {
+                        let [i, j, k] = self.mesh.faces[h.prim as usize].map(|v| v as usize);
+                        (n[i] * w + n[j] * h.u + n[k] * h.v).try_normalize(0.0).unwrap_or(geometric_normal)
+                    }
+                };
+                SurfaceHit { point, geometric_normal, shading_normal }
+            });
+        }
+        Ok(())
+    }
+
+    fn offset(&self) -> f64 {
+        self.offset
+    }
+}
+
+/// Optical settings of a path.
+#[derive(Clone, Copy, Debug)]
+pub struct PathSettings {
+    /// Refractive index of the object.
+    pub ior: f64,
+    /// Refractive index of the surrounding air.
+    pub ior_air: f64,
+    /// Most refractions a path may have; a path needing more ends as `TooManyInterfaces`.
+    pub max_refractions: u32,
+}
+
+impl PathSettings {
+    /// Index `ior` in air, at most `max_refractions` refractions.
+    pub fn new(ior: f64, max_refractions: u32) -> Self {
+        Self { ior, ior_air: IOR_AIR, max_refractions }
+    }
+}
+
+/// How a path ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
+pub enum PathEnd {
+    /// Left the object (or never met it: `refractions == 0`); `ray` is the final ray.
+    Left,
+    /// Total internal reflection at an interface.
+    TotalInternalReflection,
+    /// Met more interfaces than `max_refractions` allows.
+    TooManyInterfaces,
+    /// The shading normal faced away from the ray (interpolated normals at grazing incidence).
+    GrazingNormal,
+}
+
+/// A traced path: how it ended, its refractions, its last ray and its Fresnel transmittance.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Path {
+    pub end: PathEnd,
+    pub refractions: u32,
+    /// Origin (mm) and unit direction of the last ray: the exit ray for `Left`.
+    pub origin: Point3<f64>,
+    pub dir: Vector3<f64>,
+    /// Product of the Fresnel transmittances along the path.
+    pub transmittance: f64,
+}
+
+/// Traces `rays` (unit directions) through `surface`.
+pub fn trace_paths(surface: &dyn Surface, rays: &[Ray], settings: &PathSettings) -> Result<Vec<Path>, TraceError> {
+    let mut paths: Vec<Path> = rays
+        .iter()
+        .map(|r| Path { end: PathEnd::Left, refractions: 0, origin: r.origin, dir: r.dir, transmittance: 1.0 })
+        .collect();
+    let mut active: Vec<usize> = (0..rays.len()).collect();
+    let mut batch = Vec::new();
+    let mut hits = Vec::new();
+    while !active.is_empty() {
+        batch.clear();
+        batch.extend(active.iter().map(|&i| {
+            let (p, r) = (&paths[i], &rays[i]);
+            // The first segment keeps the caller's interval; later ones start at the offset point.
+            if p.refractions == 0 { *r } else { Ray::new(p.origin, p.dir) }
+        }));
+        hits.clear();
+        hits.resize(batch.len(), None);
+        surface.intersect(&batch, &mut hits)?;
+        let offset = surface.offset();
+        let steps: Vec<Option<Path>> = active
+            .par_iter()
+            .zip(hits.par_iter())
+            .map(|(&i, hit)| hit.map(|h| step(&paths[i], &h, settings, offset)))
+            .collect();
+        let mut next = Vec::with_capacity(active.len());
+        for (&i, s) in active.iter().zip(steps) {
+            if let Some(p) = s {
+                paths[i] = p;
+                if p.end == PathEnd::Left {
+                    next.push(i);
+                }
+            }
+        }
+        active = next;
+    }
+    Ok(paths)
+}
+
+/// The path after meeting the surface at `h`.
+fn step(p: &Path, h: &SurfaceHit, s: &PathSettings, offset: f64) -> Path {
+    let entering = p.dir.dot(&h.geometric_normal) < 0.0;
+    let (n_i, n_t) = if entering { (s.ior_air, s.ior) } else { (s.ior, s.ior_air) };
+    let n = if entering { h.shading_normal } else { -h.shading_normal };
+    let ended = |end| Path { end, origin: h.point, ..*p };
+    if p.refractions >= s.max_refractions {
+        return ended(PathEnd::TooManyInterfaces);
+    }
+    if p.dir.dot(&n) >= 0.0 {
+        return ended(PathEnd::GrazingNormal);
+    }
+    match refract(&p.dir, &n, n_i, n_t) {
+        None => ended(PathEnd::TotalInternalReflection),
+        Some(r) => {
+            let dir = r.dir.normalize();
+            Path {
+                end: PathEnd::Left,
+                refractions: p.refractions + 1,
+                origin: h.point + dir * offset,
+                dir,
+                transmittance: p.transmittance * r.transmittance,
+            }
+        }
+    }
+}
