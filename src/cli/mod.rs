@@ -23,6 +23,7 @@ mod demo;
 mod eval;
 mod info;
 mod remesh;
+mod simulate;
 
 use std::path::Path;
 
@@ -44,6 +45,8 @@ enum Command {
     Info(info::InfoArgs),
     /// Accuracy, completeness, F-scores, DRT's figure and Hausdorff distance against a reference.
     Eval(eval::EvalArgs),
+    /// A synthetic scan of a mesh: calibration, captures and ground truth.
+    Simulate(simulate::SimulateArgs),
     /// Isotropic remeshing to a target edge length.
     Remesh(remesh::RemeshArgs),
     /// Benchmarks.
@@ -78,6 +81,7 @@ pub fn run() -> Result<()> {
     match cli.command {
         Command::Info(a) => info::run(&a),
         Command::Eval(a) => eval::run(&a),
+        Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),
         Command::Bench(b) => bench::run(&b),
         Command::Demo(a) => demo::run(&a),

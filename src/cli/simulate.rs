@@ -1,0 +1,134 @@
+//! `glasscan simulate --mesh M --out SCAN`.
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::mesh::io::read_mesh;
+use crate::simulate::{simulate, SimulateOptions};
+use crate::trace::path::NormalModel;
+
+#[derive(Args, Debug)]
+pub struct SimulateArgs {
+    /// The object (.ply or .obj; closed, manifold, outward), mm.
+    #[arg(long)]
+    pub mesh: PathBuf,
+    /// The scan folder to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Turntable views, evenly spaced over 360°.
+    #[arg(long, default_value_t = 72)]
+    pub views: usize,
+    /// Camera image size, WIDTHxHEIGHT pixels.
+    #[arg(long, default_value = "1280x960", value_parser = parse_size)]
+    pub size: (u32, u32),
+    /// Refractive index of the object.
+    #[arg(long, default_value_t = 1.4723)]
+    pub ior: f64,
+    /// Monitor resolution, WIDTHxHEIGHT pixels.
+    #[arg(long, default_value = "1920x1080", value_parser = parse_size)]
+    pub screen: (u32, u32),
+    /// Monitor pixel pitch, mm.
+    #[arg(long = "pitch-mm", default_value_t = 0.2715)]
+    pub pitch_mm: f64,
+    /// Area samples per camera pixel (1: pixel centres only).
+    #[arg(long, default_value_t = 4)]
+    pub spp: u32,
+    /// Sensor noise, standard deviation in grey levels.
+    #[arg(long, default_value_t = 0.0)]
+    pub noise: f64,
+    /// Gaussian blur of the captures, sigma in pixels.
+    #[arg(long = "blur", default_value_t = 0.0)]
+    pub blur_px: f64,
+    /// Refractions traced before a path is given up.
+    #[arg(long = "max-refractions", default_value_t = 8)]
+    pub max_refractions: u32,
+    /// Write calibration and ground truth only, no capture images.
+    #[arg(long = "decoded-only")]
+    pub decoded_only: bool,
+    /// Seed of the sensor noise.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Camera centre to turntable axis, mm.
+    #[arg(long = "camera-distance-mm", default_value_t = 550.0)]
+    pub camera_distance_mm: f64,
+    /// Turntable axis to monitor, mm.
+    #[arg(long = "screen-distance-mm", default_value_t = 250.0)]
+    pub screen_distance_mm: f64,
+    /// Share of the image height the object fills.
+    #[arg(long, default_value_t = 0.6)]
+    pub fill: f64,
+    /// Normals used for refraction: face (flat, as DRT) or vertex (interpolated).
+    #[arg(long, default_value = "face", value_parser = parse_normals)]
+    pub normals: NormalModel,
+    /// No Fresnel transmission losses.
+    #[arg(long = "no-fresnel")]
+    pub no_fresnel: bool,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x960"))?;
+    let p = |v: &str| v.trim().parse::<u32>().map_err(|_| format!("'{s}': '{v}' is not a whole number"));
+    let (w, h) = (p(w)?, p(h)?);
+    if w == 0 || h == 0 {
+        return Err(format!("'{s}': both sizes must be at least 1"));
+    }
+    Ok((w, h))
+}
+
+fn parse_normals(s: &str) -> Result<NormalModel, String> {
+    match s {
+        "face" => Ok(NormalModel::Face),
+        "vertex" => Ok(NormalModel::Vertex),
+        _ => Err(format!("'{s}': expected face or vertex")),
+    }
+}
+
+pub fn run(a: &SimulateArgs) -> Result<()> {
+    let mesh = read_mesh(&a.mesh)?;
+    let o = SimulateOptions {
+        views: a.views,
+        width: a.size.0,
+        height: a.size.1,
+        ior: a.ior,
+        screen_width: a.screen.0,
+        screen_height: a.screen.1,
+        pitch_mm: a.pitch_mm,
+        spp: a.spp,
+        noise: a.noise,
+        blur_px: a.blur_px,
+        max_refractions: a.max_refractions,
+        decoded_only: a.decoded_only,
+        seed: a.seed,
+        camera_distance_mm: a.camera_distance_mm,
+        screen_distance_mm: a.screen_distance_mm,
+        fill: a.fill,
+        normals: a.normals,
+        fresnel: !a.no_fresnel,
+    };
+    let bar = ProgressBar::new(a.views as u64);
+    bar.set_style(ProgressStyle::with_template("simulate [{bar:40}] {pos}/{len} views ({eta})").expect("static template"));
+    let r = simulate(&mesh, &a.out, &o, |_| bar.inc(1))?;
+    bar.finish_and_clear();
+    outln!("simulated {} views of {} into {} in {:.1} s", r.views, a.mesh.display(), a.out.display(), r.seconds);
+    outln!("object pixels (pixel-centre rays meeting the object): {}", r.object_pixels);
+    for (what, share) in [
+        ("exactly 2 refractions, reach the monitor", r.two_refractions),
+        ("4 or more refractions, reach the monitor", r.more_refractions),
+        ("an odd number of refractions (grazing)", r.one_or_odd_refractions),
+        ("total internal reflection", r.total_internal_reflection),
+        ("leave the object but miss the monitor", r.missed_monitor),
+        ("more interfaces than --max-refractions", r.too_many_interfaces),
+        ("grazing shading normal", r.grazing_normal),
+    ] {
+        outln!("  {:>6.2} %  {what}", 100.0 * share);
+    }
+    outln!(
+        "median footprint of a camera pixel on the monitor: {:.1} monitor pixels through the glass (2 refractions), {:.2} directly",
+        r.median_footprint_px,
+        r.direct_footprint_px
+    );
+    Ok(())
+}

@@ -1,0 +1,163 @@
+//! The scan folder (documented in the README):
+//!
+//! ```text
+//! SCAN/scan.toml                  rig description (below)
+//! SCAN/camera.yml, screen.yml, turntable.yml   calibration (OpenCV FileStorage YAML)
+//! SCAN/captures/view_NNN/{00..,white,black}.png   raw captures, OpenCV GrayCodePattern order
+//! SCAN/captures/background/…      the same patterns without the object (optional)
+//! ```
+//!
+//! `scan.toml`:
+//! ```toml
+//! ior = 1.4723                  # refractive index of the object
+//! [calibration]
+//! camera = "camera.yml"         # paths relative to the scan folder
+//! screen = "screen.yml"
+//! turntable = "turntable.yml"
+//! [views]
+//! angles_deg = [0.0, 5.0]       # turntable angle of each view, degrees
+//! [patterns]
+//! kind = "graycode"             # OpenCV's GrayCodePattern order
+//! width = 1920                  # monitor pixels the patterns span (= the screen's)
+//! height = 1080
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::Isometry3;
+use serde::{Deserialize, Serialize};
+
+use crate::patterns::GrayCode;
+use crate::rig::{calib_io, Camera, Screen, Turntable};
+use crate::util::atomic::write_atomic;
+
+/// The contents of `scan.toml`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScanConfig {
+    pub ior: f64,
+    pub calibration: CalibrationFiles,
+    pub views: Views,
+    pub patterns: Patterns,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationFiles {
+    pub camera: PathBuf,
+    pub screen: PathBuf,
+    pub turntable: PathBuf,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Views {
+    pub angles_deg: Vec<f64>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Patterns {
+    pub kind: PatternKind,
+    pub width: u32,
+    pub height: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PatternKind {
+    Graycode,
+}
+
+/// A scan folder with its configuration and calibration loaded and checked.
+#[derive(Clone, Debug)]
+pub struct Scan {
+    pub dir: PathBuf,
+    pub config: ScanConfig,
+    pub camera: Camera,
+    pub screen: Screen,
+    pub turntable: Turntable,
+}
+
+/// Why a scan folder cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ScanError {
+    #[error("cannot read {path}: {cause}")]
+    Read { path: PathBuf, cause: std::io::Error },
+    #[error("{path}: {msg}")]
+    Config { path: PathBuf, msg: String },
+    #[error(transparent)]
+    Calibration(#[from] calib_io::CalibError),
+    #[error("cannot write {path}: {cause}")]
+    Write { path: PathBuf, cause: std::io::Error },
+}
+
+impl Scan {
+    /// Loads `dir/scan.toml` and the calibration files it names, and checks that they agree.
+    pub fn open(dir: &Path) -> Result<Self, ScanError> {
+        let path = dir.join("scan.toml");
+        let text = std::fs::read_to_string(&path).map_err(|cause| ScanError::Read { path: path.clone(), cause })?;
+        let config: ScanConfig = toml::from_str(&text).map_err(|e| ScanError::Config {
+            path: path.clone(),
+            msg: e.message().to_string() + &e.span().map_or(String::new(), |s| format!(" (at byte {})", s.start)),
+        })?;
+        let bad = |msg: String| ScanError::Config { path: path.clone(), msg };
+        if !(config.ior > 1.0 && config.ior.is_finite()) {
+            return Err(bad(format!("ior = {}: a solid object's refractive index is above 1", config.ior)));
+        }
+        if config.views.angles_deg.is_empty() || config.views.angles_deg.iter().any(|a| !a.is_finite()) {
+            return Err(bad("views.angles_deg must list at least one finite angle".into()));
+        }
+        let c = &config.calibration;
+        let camera = calib_io::read_camera(&dir.join(&c.camera))?;
+        let screen = calib_io::read_screen(&dir.join(&c.screen))?;
+        let (axis_point, axis_dir) = calib_io::read_turntable_axis(&dir.join(&c.turntable))?;
+        if (config.patterns.width, config.patterns.height) != (screen.width_px, screen.height_px) {
+            return Err(bad(format!(
+                "patterns are {}×{} but the screen ({}) is {}×{}",
+                config.patterns.width,
+                config.patterns.height,
+                c.screen.display(),
+                screen.width_px,
+                screen.height_px
+            )));
+        }
+        let turntable = Turntable { axis_point, axis_dir, angles_deg: config.views.angles_deg.clone() };
+        if turntable.base_pose().is_none() {
+            return Err(bad("inconsistent calibration: the camera lies on the turntable axis".into()));
+        }
+        Ok(Self { dir: dir.to_path_buf(), config, camera, screen, turntable })
+    }
+
+    /// Writes `scan.toml` and the calibration files into `self.dir` (atomically each).
+    pub fn save(&self) -> Result<(), ScanError> {
+        let c = &self.config.calibration;
+        calib_io::write_camera(&self.dir.join(&c.camera), &self.camera, 0.0)?;
+        calib_io::write_screen(&self.dir.join(&c.screen), &self.screen)?;
+        calib_io::write_turntable_axis(&self.dir.join(&c.turntable), &self.turntable.axis_point, &self.turntable.axis_dir)?;
+        let path = self.dir.join("scan.toml");
+        let text = toml::to_string_pretty(&self.config).expect("a scan config serialises");
+        write_atomic(&path, |w| w.write_all(format!("# glasscan scan folder (see README: scan folder)\n{text}").as_bytes()))
+            .map_err(|cause| ScanError::Write { path, cause })
+    }
+
+    /// The pattern set.
+    pub fn graycode(&self) -> GrayCode {
+        GrayCode { width: self.config.patterns.width, height: self.config.patterns.height }
+    }
+
+    /// World → camera transform of every view.
+    pub fn view_poses(&self) -> Vec<Isometry3<f64>> {
+        self.turntable.view_poses().expect("checked when opened")
+    }
+
+    /// Folder of view `k`'s captures.
+    pub fn view_dir(&self, k: usize) -> PathBuf {
+        self.dir.join("captures").join(format!("view_{k:03}"))
+    }
+
+    /// Folder of the background captures.
+    pub fn background_dir(&self) -> PathBuf {
+        self.dir.join("captures").join("background")
+    }
+}

@@ -1,0 +1,400 @@
+//! `glasscan simulate`: a synthetic scan of a mesh on a DRT-like rig — calibration files,
+//! `scan.toml`, the raw captures of every Gray-code pattern (and the background set), and the
+//! ground truth (the placed mesh; per view and pixel the pixel-centre ray's monitor point and
+//! outcome, the silhouette mask, and the footprint of the whole pixel on the monitor).
+
+pub mod render;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use opencv::core::{Mat, MatTraitConst, Size, Vec3f, Vec4f, Vector};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::mesh::io::write_mesh;
+use crate::mesh::validate::ensure_valid;
+use crate::mesh::TriMesh;
+use crate::patterns::GrayCode;
+use crate::rig::{Camera, Screen, Turntable};
+use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
+use crate::trace::path::{MeshSurface, NormalModel, PathSettings};
+use crate::trace::refract::IOR_AIR;
+use render::{shade, trace_view, Outcome, Sample, ViewSetup};
+
+/// Settings of a simulated scan (defaults: DRT's rig at 1280×960).
+#[derive(Clone, Debug)]
+pub struct SimulateOptions {
+    pub views: usize,
+    pub width: u32,
+    pub height: u32,
+    pub ior: f64,
+    pub screen_width: u32,
+    pub screen_height: u32,
+    pub pitch_mm: f64,
+    /// Area samples per pixel (1: pixel centres only).
+    pub spp: u32,
+    /// Standard deviation of the sensor noise, grey levels (0..255).
+    pub noise: f64,
+    /// Gaussian blur of the captures, sigma in pixels (0: none).
+    pub blur_px: f64,
+    pub max_refractions: u32,
+    pub decoded_only: bool,
+    pub seed: u64,
+    /// Camera centre to turntable axis, mm.
+    pub camera_distance_mm: f64,
+    /// Turntable axis to monitor, mm.
+    pub screen_distance_mm: f64,
+    /// Share of the image height the object fills.
+    pub fill: f64,
+    pub normals: NormalModel,
+    /// Fresnel transmission losses.
+    pub fresnel: bool,
+}
+
+impl Default for SimulateOptions {
+    fn default() -> Self {
+        Self {
+            views: 72,
+            width: 1280,
+            height: 960,
+            ior: 1.4723,
+            screen_width: 1920,
+            screen_height: 1080,
+            pitch_mm: 0.2715,
+            spp: 4,
+            noise: 0.0,
+            blur_px: 0.0,
+            max_refractions: 8,
+            decoded_only: false,
+            seed: 0,
+            camera_distance_mm: 550.0,
+            screen_distance_mm: 250.0,
+            fill: 0.6,
+            normals: NormalModel::Face,
+            fresnel: true,
+        }
+    }
+}
+
+/// Shares of the object pixels (pixel-centre rays that meet the object), over all views.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct SimulateReport {
+    pub views: usize,
+    pub object_pixels: usize,
+    pub two_refractions: f64,
+    pub more_refractions: f64,
+    pub one_or_odd_refractions: f64,
+    pub total_internal_reflection: f64,
+    pub missed_monitor: f64,
+    pub too_many_interfaces: f64,
+    pub grazing_normal: f64,
+    /// Median area of a camera pixel's footprint on the monitor through the glass, in monitor
+    /// pixels (from the spread of its area samples; 2-refraction pixels; NaN with `spp` 1).
+    pub median_footprint_px: f64,
+    /// The same without the object (the direct view of the monitor).
+    pub direct_footprint_px: f64,
+    pub seconds: f64,
+}
+
+/// Places `mesh` (centred on the turntable axis) in a DRT-like rig and writes a scan to `out`.
+pub fn simulate(mesh: &TriMesh, out: &Path, o: &SimulateOptions, mut progress: impl FnMut(usize)) -> Result<SimulateReport> {
+    let t0 = Instant::now();
+    check_options(o)?;
+    ensure_valid(mesh).context("the mesh to simulate is not a valid closed surface")?;
+    let (lo, hi) = mesh.bbox().expect("a valid mesh has vertices");
+    let mut placed = mesh.clone();
+    placed.scale_translate(1.0, -(lo.coords + hi.coords) / 2.0);
+    let radius_xz = placed.positions.iter().map(|p| p.x.hypot(p.z)).fold(0.0, f64::max);
+    let bound_radius = placed.positions.iter().map(|p| p.coords.norm()).fold(0.0, f64::max);
+    let height_y = hi.y - lo.y;
+    let d = o.camera_distance_mm;
+    if bound_radius * 1.2 >= d {
+        bail!("the object (radius {bound_radius:.1} mm) does not fit in front of the camera at {d} mm; raise --camera-distance-mm");
+    }
+    if o.screen_distance_mm <= bound_radius {
+        bail!("the monitor ({} mm behind the axis) would cut the object (radius {bound_radius:.1} mm)", o.screen_distance_mm);
+    }
+
+    // Camera: the object fills `fill` of the image height, and fits the width.
+    let f = (o.fill * o.height as f64 * d / height_y).min(0.9 * o.width as f64 * (d - radius_xz) / (2.0 * radius_xz));
+    let camera = Camera {
+        width: o.width,
+        height: o.height,
+        fx: f,
+        fy: f,
+        cx: (o.width as f64 - 1.0) / 2.0,
+        cy: (o.height as f64 - 1.0) / 2.0,
+        dist: [0.0; 5],
+    };
+    // Monitor: centred on the optical axis, facing the camera, rows downwards like the image.
+    let z = d + o.screen_distance_mm;
+    let screen = Screen {
+        width_px: o.screen_width,
+        height_px: o.screen_height,
+        pitch_mm: o.pitch_mm,
+        pose: Isometry3::from_parts(
+            Translation3::new(
+                -(o.screen_width as f64 - 1.0) / 2.0 * o.pitch_mm,
+                -(o.screen_height as f64 - 1.0) / 2.0 * o.pitch_mm,
+                z,
+            ),
+            UnitQuaternion::identity(),
+        ),
+    };
+    let centre_ray = camera.pixel_ray(camera.cx, camera.cy).expect("no distortion");
+    if screen.intersect(&Point3::origin(), &centre_ray).is_none() {
+        bail!("the camera cannot see the monitor");
+    }
+    // Turntable: vertical axis (world +y up = camera −y) through (0, 0, d).
+    let turntable = Turntable {
+        axis_point: Point3::new(0.0, 0.0, d),
+        axis_dir: -Vector3::y_axis(),
+        angles_deg: Turntable::even_angles(o.views),
+    };
+    let scan = Scan {
+        dir: out.to_path_buf(),
+        config: ScanConfig {
+            ior: o.ior,
+            calibration: CalibrationFiles {
+                camera: "camera.yml".into(),
+                screen: "screen.yml".into(),
+                turntable: "turntable.yml".into(),
+            },
+            views: Views { angles_deg: turntable.angles_deg.clone() },
+            patterns: Patterns { kind: PatternKind::Graycode, width: o.screen_width, height: o.screen_height },
+        },
+        camera,
+        screen,
+        turntable,
+    };
+    let truth = out.join("truth");
+    std::fs::create_dir_all(&truth).with_context(|| format!("cannot create {}", truth.display()))?;
+    scan.save()?;
+    write_mesh(&out.join("ground_truth.ply"), &placed)?;
+
+    let surface = MeshSurface::new(&placed, o.normals)?;
+    let code = scan.graycode();
+    let settings = PathSettings { ior: o.ior, ior_air: IOR_AIR, max_refractions: o.max_refractions };
+    let mut tally = Tally::default();
+    let poses = scan.view_poses();
+    let setup = |pose: Isometry3<f64>, surface| ViewSetup {
+        camera: &scan.camera,
+        pose,
+        screen: &scan.screen,
+        surface,
+        bound_centre: Point3::origin(),
+        bound_radius: bound_radius * (1.0 + 1e-9),
+        settings,
+        fresnel: o.fresnel,
+    };
+    // Background: the monitor without the object (the same for every view).
+    let background = trace_view(&setup(poses[0], None), o.spp)?;
+    let direct_footprint_px = median(footprints(&background, o.spp, |_| true));
+    if !o.decoded_only {
+        write_captures(&scan.background_dir(), &background, o, &code, o.seed ^ 0xb6)?;
+    }
+    for (k, pose) in poses.iter().enumerate() {
+        let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
+        tally.add(&samples, o.spp);
+        write_truth(&truth, k, &samples, &scan.camera, o.spp)?;
+        if !o.decoded_only {
+            write_captures(&scan.view_dir(k), &samples, o, &code, o.seed.wrapping_add(k as u64))?;
+        }
+        progress(k);
+    }
+    let mut report = tally.report(o.views);
+    report.direct_footprint_px = direct_footprint_px;
+    report.seconds = t0.elapsed().as_secs_f64();
+    crate::util::atomic::write_atomic(&truth.join("summary.json"), |w| {
+        serde_json::to_writer_pretty(&mut *w, &report)?;
+        Ok(())
+    })?;
+    Ok(report)
+}
+
+fn check_options(o: &SimulateOptions) -> Result<()> {
+    if o.width == 0 || o.height == 0 {
+        bail!("image size {}x{}: both must be at least 1 pixel", o.width, o.height);
+    }
+    if o.screen_width < 2 || o.screen_height < 2 {
+        bail!("screen size {}x{}: both must be at least 2 pixels", o.screen_width, o.screen_height);
+    }
+    if !(o.ior > 1.0 && o.ior.is_finite()) {
+        bail!("--ior {}: a solid object's refractive index is above 1", o.ior);
+    }
+    if !(o.pitch_mm > 0.0 && o.camera_distance_mm > 0.0 && o.screen_distance_mm > 0.0) {
+        bail!("pitch and distances must be positive");
+    }
+    if !(o.fill > 0.0 && o.fill <= 1.0) {
+        bail!("--fill {}: it must lie in (0, 1]", o.fill);
+    }
+    if o.views == 0 || o.spp == 0 || o.max_refractions == 0 {
+        bail!("views, spp and max refractions must be at least 1");
+    }
+    if !(o.noise >= 0.0 && o.blur_px >= 0.0) {
+        bail!("noise and blur must not be negative");
+    }
+    Ok(())
+}
+
+/// Writes the capture images of one view (or of the background) into `dir`.
+fn write_captures(dir: &Path, samples: &[Sample], o: &SimulateOptions, code: &GrayCode, seed: u64) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let names = code.file_names();
+    names.par_iter().enumerate().try_for_each(|(i, name)| -> Result<()> {
+        let mut img = shade(samples, o.spp, code, i);
+        if o.noise > 0.0 {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_mul(1000).wrapping_add(i as u64));
+            let normal = Normal::new(0.0, o.noise).expect("positive sigma");
+            for p in &mut img {
+                *p += normal.sample(&mut rng) as f32;
+            }
+        }
+        let bytes: Vec<u8> = img.iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect();
+        let mat = Mat::new_rows_cols_with_data(o.height as i32, o.width as i32, &bytes)?;
+        let mut out = mat.try_clone()?;
+        if o.blur_px > 0.0 {
+            opencv::imgproc::gaussian_blur(&mat, &mut out, Size::new(0, 0), o.blur_px, o.blur_px, opencv::core::BORDER_REPLICATE)?;
+        }
+        write_image(&dir.join(name), &out)
+    })
+}
+
+/// Writes an image atomically through OpenCV (fast PNG compression).
+fn write_image(path: &Path, img: &impl opencv::core::ToInputArray) -> Result<()> {
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("png");
+    let tmp: PathBuf = path.with_extension(format!("tmp.{ext}"));
+    let params = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_PNG_COMPRESSION, 1]);
+    if !opencv::imgcodecs::imwrite(&tmp, img, &params)? {
+        bail!("OpenCV could not write {}", path.display());
+    }
+    std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
+
+/// Ground truth of one view: the pixel-centre map, the footprints and the mask.
+fn write_truth(dir: &Path, k: usize, samples: &[Sample], cam: &Camera, spp: u32) -> Result<()> {
+    let (w, h) = (cam.width as i32, cam.height as i32);
+    let mut centre = Vec::with_capacity(samples.len() / spp as usize);
+    let mut foot = Vec::with_capacity(centre.capacity());
+    let mut mask = Vec::with_capacity(centre.capacity());
+    for px in samples.chunks(spp as usize) {
+        let c = px[0];
+        let (u, v) = match c.outcome {
+            Outcome::Monitor(_) => (c.monitor.x as f32, c.monitor.y as f32),
+            _ => (f32::NAN, f32::NAN),
+        };
+        centre.push(Vec3f::from([u, v, c.outcome.code()]));
+        mask.push(if c.outcome.hit_object() { 255u8 } else { 0 });
+        let on: Vec<&Sample> = px.iter().filter(|s| matches!(s.outcome, Outcome::Monitor(_))).collect();
+        let n = on.len() as f64;
+        if on.is_empty() {
+            foot.push(Vec4f::from([f32::NAN, f32::NAN, f32::NAN, 0.0]));
+        } else {
+            let (mu, mv) = (on.iter().map(|s| s.monitor.x).sum::<f64>() / n, on.iter().map(|s| s.monitor.y).sum::<f64>() / n);
+            let spread = (on.iter().map(|s| (s.monitor.x - mu).powi(2) + (s.monitor.y - mv).powi(2)).sum::<f64>() / n).sqrt();
+            foot.push(Vec4f::from([mu as f32, mv as f32, spread as f32, (n / spp as f64) as f32]));
+        }
+    }
+    write_image(&dir.join(format!("view_{k:03}_centre.tiff")), &Mat::new_rows_cols_with_data(h, w, &centre)?)?;
+    write_image(&dir.join(format!("view_{k:03}_footprint.tiff")), &Mat::new_rows_cols_with_data(h, w, &foot)?)?;
+    write_image(&dir.join(format!("view_{k:03}_mask.png")), &Mat::new_rows_cols_with_data(h, w, &mask)?)?;
+    Ok(())
+}
+
+/// Footprint areas (monitor pixels) of the pixels all of whose area samples reached the monitor
+/// through the same number of refractions `k` with `keep(k)`: the samples' spread on the monitor
+/// relative to their spread in the camera pixel, squared (exact for a locally linear map with
+/// equal scaling; a median over many pixels is robust). Empty with one sample per pixel.
+fn footprints(samples: &[Sample], spp: u32, keep: impl Fn(u32) -> bool) -> Vec<f64> {
+    if spp < 2 {
+        return Vec::new();
+    }
+    let offsets = render::sample_offsets(spp);
+    let n = spp as f64;
+    let (ox, oy) = (offsets.iter().map(|o| o.0).sum::<f64>() / n, offsets.iter().map(|o| o.1).sum::<f64>() / n);
+    let s0 = offsets.iter().map(|o| (o.0 - ox).powi(2) + (o.1 - oy).powi(2)).sum::<f64>() / n;
+    samples
+        .chunks(spp as usize)
+        .filter_map(|px| {
+            let Outcome::Monitor(k) = px[0].outcome else { return None };
+            if !keep(k) || px.iter().any(|s| s.outcome != px[0].outcome) {
+                return None;
+            }
+            let (mu, mv) = (px.iter().map(|s| s.monitor.x).sum::<f64>() / n, px.iter().map(|s| s.monitor.y).sum::<f64>() / n);
+            let s2 = px.iter().map(|s| (s.monitor.x - mu).powi(2) + (s.monitor.y - mv).powi(2)).sum::<f64>() / n;
+            Some(s2 / s0)
+        })
+        .collect()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Counts of the object pixels' outcomes over all views.
+#[derive(Default)]
+struct Tally {
+    object: usize,
+    two: usize,
+    more: usize,
+    odd: usize,
+    tir: usize,
+    missed: usize,
+    too_many: usize,
+    grazing: usize,
+    footprints: Vec<f64>,
+}
+
+impl Tally {
+    fn add(&mut self, samples: &[Sample], spp: u32) {
+        for px in samples.chunks(spp as usize) {
+            let o = px[0].outcome;
+            if !o.hit_object() {
+                continue;
+            }
+            self.object += 1;
+            match o {
+                Outcome::Monitor(2) => self.two += 1,
+                Outcome::Monitor(k) if k > 2 && k % 2 == 0 => self.more += 1,
+                Outcome::Monitor(_) => self.odd += 1,
+                Outcome::TotalInternalReflection => self.tir += 1,
+                Outcome::MissedMonitor { .. } => self.missed += 1,
+                Outcome::TooManyInterfaces => self.too_many += 1,
+                Outcome::GrazingNormal => self.grazing += 1,
+            }
+        }
+        // Subsample the footprints to bound memory over 72 views.
+        let f = footprints(samples, spp, |k| k == 2);
+        self.footprints.extend(f.into_iter().step_by(7));
+    }
+
+    fn report(self, views: usize) -> SimulateReport {
+        let n = self.object.max(1) as f64;
+        SimulateReport {
+            views,
+            object_pixels: self.object,
+            two_refractions: self.two as f64 / n,
+            more_refractions: self.more as f64 / n,
+            one_or_odd_refractions: self.odd as f64 / n,
+            total_internal_reflection: self.tir as f64 / n,
+            missed_monitor: self.missed as f64 / n,
+            too_many_interfaces: self.too_many as f64 / n,
+            grazing_normal: self.grazing as f64 / n,
+            median_footprint_px: median(self.footprints),
+            direct_footprint_px: f64::NAN,
+            seconds: 0.0,
+        }
+    }
+}
+

@@ -1,0 +1,161 @@
+//! One view of a simulated scan: trace every pixel's area samples once (camera → object →
+//! monitor), then shade all pattern images from those paths, and keep the ground truth.
+
+use nalgebra::{Isometry3, Point2, Point3, Vector3};
+use rayon::prelude::*;
+
+use crate::patterns::GrayCode;
+use crate::rig::{Camera, Screen};
+use crate::trace::path::{trace_paths, MeshSurface, PathEnd, PathSettings};
+use crate::trace::{Ray, TraceError};
+
+/// What happened to a ray from the camera (the `status` channel of the ground truth).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Outcome {
+    /// Reached the monitor after this many refractions (0: it missed the object).
+    Monitor(u32),
+    TotalInternalReflection,
+    TooManyInterfaces,
+    /// Left the object but missed the monitor (or missed both).
+    MissedMonitor { refractions: u32 },
+    GrazingNormal,
+}
+
+impl Outcome {
+    /// The value stored in the `status` channel: refractions (≥ 0) when the monitor was reached,
+    /// −1 TIR, −2 too many interfaces, −3 missed the monitor, −4 grazing shading normal.
+    pub fn code(&self) -> f32 {
+        match *self {
+            Outcome::Monitor(k) => k as f32,
+            Outcome::TotalInternalReflection => -1.0,
+            Outcome::TooManyInterfaces => -2.0,
+            Outcome::MissedMonitor { .. } => -3.0,
+            Outcome::GrazingNormal => -4.0,
+        }
+    }
+
+    /// Did the ray meet the object?
+    pub fn hit_object(&self) -> bool {
+        !matches!(self, Outcome::Monitor(0) | Outcome::MissedMonitor { refractions: 0 })
+    }
+}
+
+/// One area sample of a pixel.
+#[derive(Clone, Copy, Debug)]
+pub struct Sample {
+    pub outcome: Outcome,
+    /// Monitor pixel coordinates where the ray landed (valid for `Outcome::Monitor`).
+    pub monitor: Point2<f64>,
+    /// Light carried (Fresnel transmittance, or 1).
+    pub weight: f64,
+}
+
+/// Sub-pixel offsets of `spp` area samples (R2 low-discrepancy sequence; sample 0 is the pixel
+/// centre), in pixels.
+pub fn sample_offsets(spp: u32) -> Vec<(f64, f64)> {
+    const A1: f64 = 0.754_877_666_246_692_7;
+    const A2: f64 = 0.569_840_290_998_053_2;
+    (0..spp).map(|j| ((0.5 + j as f64 * A1).fract() - 0.5, (0.5 + j as f64 * A2).fract() - 0.5)).collect()
+}
+
+/// Everything a view needs, in the world frame.
+pub struct ViewSetup<'a> {
+    pub camera: &'a Camera,
+    /// World → camera.
+    pub pose: Isometry3<f64>,
+    pub screen: &'a Screen,
+    pub surface: Option<&'a MeshSurface>,
+    /// Bounding sphere of the object (world frame): rays that miss it skip the tracer.
+    pub bound_centre: Point3<f64>,
+    pub bound_radius: f64,
+    pub settings: PathSettings,
+    pub fresnel: bool,
+}
+
+/// Traces `spp` samples of every pixel (row-major; samples of a pixel together).
+pub fn trace_view(v: &ViewSetup, spp: u32) -> Result<Vec<Sample>, TraceError> {
+    let (w, h) = (v.camera.width, v.camera.height);
+    let to_world = v.pose.inverse();
+    let screen = v.screen.transformed(&to_world);
+    let eye = to_world * Point3::origin();
+    let offsets = sample_offsets(spp);
+    let rays: Vec<Option<Ray>> = (0..h * w)
+        .into_par_iter()
+        .flat_map_iter(|p| {
+            let (x, y) = ((p % w) as f64, (p / w) as f64);
+            offsets.iter().map(move |(dx, dy)| {
+                v.camera.pixel_ray(x + dx, y + dy).map(|d| Ray::new(eye, to_world * d))
+            })
+        })
+        .collect();
+    // Rays that can meet the object go through the tracer; the others fly straight.
+    let r2 = v.bound_radius * v.bound_radius;
+    let may_hit = |r: &Ray| {
+        let oc = r.origin - v.bound_centre;
+        let b = oc.dot(&r.dir);
+        oc.norm_squared() - b * b <= r2 && (b < 0.0 || oc.norm_squared() <= r2)
+    };
+    let candidates: Vec<usize> = match v.surface {
+        Some(_) => (0..rays.len()).filter(|&i| rays[i].as_ref().is_some_and(may_hit)).collect(),
+        None => Vec::new(),
+    };
+    let traced = match v.surface {
+        Some(s) => {
+            let batch: Vec<Ray> = candidates.iter().map(|&i| rays[i].expect("filtered")).collect();
+            trace_paths(s, &batch, &v.settings)?
+        }
+        None => Vec::new(),
+    };
+    let mut samples: Vec<Sample> = rays
+        .par_iter()
+        .map(|r| match r {
+            None => Sample { outcome: Outcome::MissedMonitor { refractions: 0 }, monitor: Point2::origin(), weight: 0.0 },
+            Some(r) => land(&screen, &r.origin, &r.dir, 0, 1.0),
+        })
+        .collect();
+    for (&i, p) in candidates.iter().zip(&traced) {
+        let weight = if v.fresnel { p.transmittance } else { 1.0 };
+        samples[i] = match p.end {
+            PathEnd::Left => land(&screen, &p.origin, &p.dir, p.refractions, weight),
+            PathEnd::TotalInternalReflection => dark(Outcome::TotalInternalReflection),
+            PathEnd::TooManyInterfaces => dark(Outcome::TooManyInterfaces),
+            PathEnd::GrazingNormal => dark(Outcome::GrazingNormal),
+        };
+    }
+    Ok(samples)
+}
+
+fn dark(outcome: Outcome) -> Sample {
+    Sample { outcome, monitor: Point2::origin(), weight: 0.0 }
+}
+
+fn land(screen: &Screen, o: &Point3<f64>, d: &Vector3<f64>, refractions: u32, weight: f64) -> Sample {
+    match screen.intersect(o, d) {
+        Some((_, px)) => Sample { outcome: Outcome::Monitor(refractions), monitor: px, weight },
+        None => dark(Outcome::MissedMonitor { refractions }),
+    }
+}
+
+/// Shades image `i` of the capture sequence (patterns, then white, then black) as 0..255
+/// intensities (before noise), from the samples of a view.
+pub fn shade(samples: &[Sample], spp: u32, code: &GrayCode, i: usize) -> Vec<f32> {
+    let n = code.pattern_count();
+    samples
+        .par_chunks(spp as usize)
+        .map(|px| {
+            let lit: f64 = px
+                .iter()
+                .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
+                .filter(|s| {
+                    let (u, v) = (s.monitor.x.round() as u32, s.monitor.y.round() as u32);
+                    match i {
+                        i if i < n => code.is_white(i, u, v),
+                        i => i == n, // white image; the black image shows nothing
+                    }
+                })
+                .map(|s| s.weight)
+                .sum();
+            (255.0 * lit / spp as f64) as f32
+        })
+        .collect()
+}
