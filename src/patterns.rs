@@ -31,7 +31,11 @@ impl GrayCode {
     /// Is monitor pixel (u, v) white in pattern image `i` (< [`Self::pattern_count`])?
     pub fn is_white(&self, i: usize, u: u32, v: u32) -> bool {
         let nc = self.column_bits() as usize;
-        let (bits, value, j) = if i < 2 * nc { (nc, u, i) } else { (self.row_bits() as usize, v, i - 2 * nc) };
+        let (bits, value, j) = if i < 2 * nc {
+            (nc, u, i)
+        } else {
+            (self.row_bits() as usize, v, i - 2 * nc)
+        };
         let k = bits - 1 - j / 2;
         let gray = value ^ (value >> 1);
         ((gray >> k) & 1 == 1) != (j % 2 == 1)

@@ -83,30 +83,51 @@ pub struct Scan {
 #[derive(Debug, thiserror::Error)]
 pub enum ScanError {
     #[error("cannot read {path}: {cause}")]
-    Read { path: PathBuf, cause: std::io::Error },
+    Read {
+        path: PathBuf,
+        cause: std::io::Error,
+    },
     #[error("{path}: {msg}")]
     Config { path: PathBuf, msg: String },
     #[error(transparent)]
     Calibration(#[from] calib_io::CalibError),
     #[error("cannot write {path}: {cause}")]
-    Write { path: PathBuf, cause: std::io::Error },
+    Write {
+        path: PathBuf,
+        cause: std::io::Error,
+    },
 }
 
 impl Scan {
     /// Loads `dir/scan.toml` and the calibration files it names, and checks that they agree.
     pub fn open(dir: &Path) -> Result<Self, ScanError> {
         let path = dir.join("scan.toml");
-        let text = std::fs::read_to_string(&path).map_err(|cause| ScanError::Read { path: path.clone(), cause })?;
+        let text = std::fs::read_to_string(&path).map_err(|cause| ScanError::Read {
+            path: path.clone(),
+            cause,
+        })?;
         let config: ScanConfig = toml::from_str(&text).map_err(|e| ScanError::Config {
             path: path.clone(),
-            msg: e.message().to_string() + &e.span().map_or(String::new(), |s| format!(" (at byte {})", s.start)),
+            msg: e.message().to_string()
+                + &e.span()
+                    .map_or(String::new(), |s| format!(" (at byte {})", s.start)),
         })?;
-        let bad = |msg: String| ScanError::Config { path: path.clone(), msg };
+        let bad = |msg: String| ScanError::Config {
+            path: path.clone(),
+            msg,
+        };
         if !(config.ior > 1.0 && config.ior.is_finite()) {
-            return Err(bad(format!("ior = {}: a solid object's refractive index is above 1", config.ior)));
+            return Err(bad(format!(
+                "ior = {}: a solid object's refractive index is above 1",
+                config.ior
+            )));
         }
-        if config.views.angles_deg.is_empty() || config.views.angles_deg.iter().any(|a| !a.is_finite()) {
-            return Err(bad("views.angles_deg must list at least one finite angle".into()));
+        if config.views.angles_deg.is_empty()
+            || config.views.angles_deg.iter().any(|a| !a.is_finite())
+        {
+            return Err(bad(
+                "views.angles_deg must list at least one finite angle".into()
+            ));
         }
         let c = &config.calibration;
         let camera = calib_io::read_camera(&dir.join(&c.camera))?;
@@ -122,11 +143,23 @@ impl Scan {
                 screen.height_px
             )));
         }
-        let turntable = Turntable { axis_point, axis_dir, angles_deg: config.views.angles_deg.clone() };
+        let turntable = Turntable {
+            axis_point,
+            axis_dir,
+            angles_deg: config.views.angles_deg.clone(),
+        };
         if turntable.base_pose().is_none() {
-            return Err(bad("inconsistent calibration: the camera lies on the turntable axis".into()));
+            return Err(bad(
+                "inconsistent calibration: the camera lies on the turntable axis".into(),
+            ));
         }
-        Ok(Self { dir: dir.to_path_buf(), config, camera, screen, turntable })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            config,
+            camera,
+            screen,
+            turntable,
+        })
     }
 
     /// Writes `scan.toml` and the calibration files into `self.dir` (atomically each).
@@ -134,16 +167,27 @@ impl Scan {
         let c = &self.config.calibration;
         calib_io::write_camera(&self.dir.join(&c.camera), &self.camera, 0.0)?;
         calib_io::write_screen(&self.dir.join(&c.screen), &self.screen)?;
-        calib_io::write_turntable_axis(&self.dir.join(&c.turntable), &self.turntable.axis_point, &self.turntable.axis_dir)?;
+        calib_io::write_turntable_axis(
+            &self.dir.join(&c.turntable),
+            &self.turntable.axis_point,
+            &self.turntable.axis_dir,
+        )?;
         let path = self.dir.join("scan.toml");
         let text = toml::to_string_pretty(&self.config).expect("a scan config serialises");
-        write_atomic(&path, |w| w.write_all(format!("# glasscan scan folder (see README: scan folder)\n{text}").as_bytes()))
-            .map_err(|cause| ScanError::Write { path, cause })
+        write_atomic(&path, |w| {
+            w.write_all(
+                format!("# glasscan scan folder (see README: scan folder)\n{text}").as_bytes(),
+            )
+        })
+        .map_err(|cause| ScanError::Write { path, cause })
     }
 
     /// The pattern set.
     pub fn graycode(&self) -> GrayCode {
-        GrayCode { width: self.config.patterns.width, height: self.config.patterns.height }
+        GrayCode {
+            width: self.config.patterns.width,
+            height: self.config.patterns.height,
+        }
     }
 
     /// World → camera transform of every view.

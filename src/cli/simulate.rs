@@ -60,8 +60,9 @@ pub struct SimulateArgs {
     /// Share of the image height the object fills.
     #[arg(long, default_value_t = 0.6)]
     pub fill: f64,
-    /// Normals used for refraction: face (flat, as DRT) or vertex (interpolated).
-    #[arg(long, default_value = "face", value_parser = parse_normals)]
+    /// Normals the object refracts with: vertex (interpolated, a smooth object) or face (flat
+    /// facets).
+    #[arg(long, default_value = "vertex", value_parser = parse_normals)]
     pub normals: NormalModel,
     /// No Fresnel transmission losses.
     #[arg(long = "no-fresnel")]
@@ -69,8 +70,14 @@ pub struct SimulateArgs {
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x960"))?;
-    let p = |v: &str| v.trim().parse::<u32>().map_err(|_| format!("'{s}': '{v}' is not a whole number"));
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x960"))?;
+    let p = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("'{s}': '{v}' is not a whole number"))
+    };
     let (w, h) = (p(w)?, p(h)?);
     if w == 0 || h == 0 {
         return Err(format!("'{s}': both sizes must be at least 1"));
@@ -109,18 +116,42 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
         fresnel: !a.no_fresnel,
     };
     let bar = ProgressBar::new(a.views as u64);
-    bar.set_style(ProgressStyle::with_template("simulate [{bar:40}] {pos}/{len} views ({eta})").expect("static template"));
+    bar.set_style(
+        ProgressStyle::with_template("simulate [{bar:40}] {pos}/{len} views ({eta})")
+            .expect("static template"),
+    );
     let r = simulate(&mesh, &a.out, &o, |_| bar.inc(1))?;
     bar.finish_and_clear();
-    outln!("simulated {} views of {} into {} in {:.1} s", r.views, a.mesh.display(), a.out.display(), r.seconds);
-    outln!("object pixels (pixel-centre rays meeting the object): {}", r.object_pixels);
+    outln!(
+        "simulated {} views of {} into {} in {:.1} s",
+        r.views,
+        a.mesh.display(),
+        a.out.display(),
+        r.seconds
+    );
+    outln!(
+        "object pixels (pixel-centre rays meeting the object): {}",
+        r.object_pixels
+    );
     for (what, share) in [
-        ("exactly 2 refractions, reach the monitor", r.two_refractions),
-        ("4 or more refractions, reach the monitor", r.more_refractions),
-        ("an odd number of refractions (grazing)", r.one_or_odd_refractions),
+        (
+            "exactly 2 refractions, reach the monitor",
+            r.two_refractions,
+        ),
+        (
+            "4 or more refractions, reach the monitor",
+            r.more_refractions,
+        ),
+        (
+            "an odd number of refractions (grazing)",
+            r.one_or_odd_refractions,
+        ),
         ("total internal reflection", r.total_internal_reflection),
         ("leave the object but miss the monitor", r.missed_monitor),
-        ("more interfaces than --max-refractions", r.too_many_interfaces),
+        (
+            "more interfaces than --max-refractions",
+            r.too_many_interfaces,
+        ),
         ("grazing shading normal", r.grazing_normal),
     ] {
         outln!("  {:>6.2} %  {what}", 100.0 * share);

@@ -11,8 +11,13 @@
 
 use std::path::Path;
 
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
-use opencv::core::{FileNodeTraitConst, FileStorage, FileStorageTrait, FileStorageTraitConst, Mat, MatTraitConst, MatTraitConstManual};
+use nalgebra::{
+    Isometry3, Matrix3, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3,
+};
+use opencv::core::{
+    FileNodeTraitConst, FileStorage, FileStorageTrait, FileStorageTraitConst, Mat, MatTraitConst,
+    MatTraitConstManual,
+};
 
 use super::{Camera, Screen};
 use crate::util::atomic::write_atomic;
@@ -26,7 +31,10 @@ pub struct CalibError {
 }
 
 fn err(path: &Path, msg: impl Into<String>) -> CalibError {
-    CalibError { path: path.display().to_string(), msg: msg.into() }
+    CalibError {
+        path: path.display().to_string(),
+        msg: msg.into(),
+    }
 }
 
 fn cv(path: &Path) -> impl Fn(opencv::Error) -> CalibError + '_ {
@@ -70,7 +78,10 @@ impl<'a> Reader<'a> {
     fn positive_int(&self, key: &str) -> Result<u32, CalibError> {
         let v = self.real(key)?;
         if v < 1.0 || v.fract() != 0.0 || v > u32::MAX as f64 {
-            return Err(err(self.path, format!("'{key}' = {v}: expected a positive whole number")));
+            return Err(err(
+                self.path,
+                format!("'{key}' = {v}: expected a positive whole number"),
+            ));
         }
         Ok(v as u32)
     }
@@ -80,10 +91,14 @@ impl<'a> Reader<'a> {
         let m = self.node(key)?.mat().map_err(cv(self.path))?;
         let (r, c) = (m.rows(), m.cols());
         if !sizes.contains(&(r, c)) {
-            return Err(err(self.path, format!("'{key}' is {r}×{c}, expected one of {sizes:?}")));
+            return Err(err(
+                self.path,
+                format!("'{key}' is {r}×{c}, expected one of {sizes:?}"),
+            ));
         }
         let mut f = Mat::default();
-        m.convert_to(&mut f, opencv::core::CV_64F, 1.0, 0.0).map_err(cv(self.path))?;
+        m.convert_to(&mut f, opencv::core::CV_64F, 1.0, 0.0)
+            .map_err(cv(self.path))?;
         let v: Vec<f64> = f.data_typed::<f64>().map_err(cv(self.path))?.to_vec();
         if v.iter().any(|x| !x.is_finite()) {
             return Err(err(self.path, format!("'{key}' has a non-finite entry")));
@@ -122,33 +137,62 @@ impl<'a> Writer<'a> {
 
     fn finish(mut self) -> Result<(), CalibError> {
         let text = self.fs.release_and_get_string().map_err(cv(self.path))?;
-        write_atomic(self.path, |w| w.write_all(text.as_bytes())).map_err(|e| err(self.path, format!("cannot write: {e}")))
+        write_atomic(self.path, |w| w.write_all(text.as_bytes()))
+            .map_err(|e| err(self.path, format!("cannot write: {e}")))
     }
 }
 
 /// Reads a camera file (OpenCV calibration sample keys).
 pub fn read_camera(path: &Path) -> Result<Camera, CalibError> {
     let r = Reader::open(path)?;
-    let (width, height) = (r.positive_int("image_width")?, r.positive_int("image_height")?);
+    let (width, height) = (
+        r.positive_int("image_width")?,
+        r.positive_int("image_height")?,
+    );
     let k = r.matrix("camera_matrix", &[(3, 3)])?;
     let d = r.matrix("distortion_coefficients", &[(4, 1), (1, 4), (5, 1), (1, 5)])?;
     if k[1] != 0.0 || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
-        return Err(err(path, "camera_matrix is not of the form [fx 0 cx; 0 fy cy; 0 0 1]"));
+        return Err(err(
+            path,
+            "camera_matrix is not of the form [fx 0 cx; 0 fy cy; 0 0 1]",
+        ));
     }
     if !(k[0] > 0.0 && k[4] > 0.0) {
-        return Err(err(path, format!("focal lengths must be positive (fx = {}, fy = {})", k[0], k[4])));
+        return Err(err(
+            path,
+            format!(
+                "focal lengths must be positive (fx = {}, fy = {})",
+                k[0], k[4]
+            ),
+        ));
     }
     let mut dist = [0.0; 5];
     dist[..d.len()].copy_from_slice(&d);
-    Ok(Camera { width, height, fx: k[0], fy: k[4], cx: k[2], cy: k[5], dist })
+    Ok(Camera {
+        width,
+        height,
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+        dist,
+    })
 }
 
 /// Writes a camera file with the keys of OpenCV's calibration sample.
-pub fn write_camera(path: &Path, c: &Camera, avg_reprojection_error: f64) -> Result<(), CalibError> {
+pub fn write_camera(
+    path: &Path,
+    c: &Camera,
+    avg_reprojection_error: f64,
+) -> Result<(), CalibError> {
     let mut w = Writer::new(path)?;
     w.int("image_width", c.width)?;
     w.int("image_height", c.height)?;
-    w.matrix("camera_matrix", 3, &[c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0])?;
+    w.matrix(
+        "camera_matrix",
+        3,
+        &[c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0],
+    )?;
     w.matrix("distortion_coefficients", 5, &c.dist)?;
     w.real("avg_reprojection_error", avg_reprojection_error)?;
     w.finish()
@@ -157,18 +201,32 @@ pub fn write_camera(path: &Path, c: &Camera, avg_reprojection_error: f64) -> Res
 /// Reads a screen file.
 pub fn read_screen(path: &Path) -> Result<Screen, CalibError> {
     let r = Reader::open(path)?;
-    let (width_px, height_px) = (r.positive_int("screen_width")?, r.positive_int("screen_height")?);
+    let (width_px, height_px) = (
+        r.positive_int("screen_width")?,
+        r.positive_int("screen_height")?,
+    );
     let pitch_mm = r.real("pitch_mm")?;
     if pitch_mm <= 0.0 {
-        return Err(err(path, format!("pitch_mm = {pitch_mm}: it must be positive")));
+        return Err(err(
+            path,
+            format!("pitch_mm = {pitch_mm}: it must be positive"),
+        ));
     }
     let rm = Matrix3::from_row_slice(&r.matrix("rotation", &[(3, 3)])?);
     if (rm.transpose() * rm - Matrix3::identity()).amax() > 1e-6 || rm.determinant() < 0.0 {
-        return Err(err(path, "rotation is not a rotation matrix (orthonormal, determinant +1)"));
+        return Err(err(
+            path,
+            "rotation is not a rotation matrix (orthonormal, determinant +1)",
+        ));
     }
     let t = r.matrix("translation_mm", &[(3, 1), (1, 3)])?;
     let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(rm));
-    Ok(Screen { width_px, height_px, pitch_mm, pose: Isometry3::from_parts(Translation3::new(t[0], t[1], t[2]), rot) })
+    Ok(Screen {
+        width_px,
+        height_px,
+        pitch_mm,
+        pose: Isometry3::from_parts(Translation3::new(t[0], t[1], t[2]), rot),
+    })
 }
 
 /// Writes a screen file.
@@ -178,7 +236,9 @@ pub fn write_screen(path: &Path, s: &Screen) -> Result<(), CalibError> {
     w.int("screen_height", s.height_px)?;
     w.real("pitch_mm", s.pitch_mm)?;
     let r = s.pose.rotation.to_rotation_matrix().into_inner();
-    let row_major: Vec<f64> = (0..3).flat_map(|i| (0..3).map(move |j| r[(i, j)])).collect();
+    let row_major: Vec<f64> = (0..3)
+        .flat_map(|i| (0..3).map(move |j| r[(i, j)]))
+        .collect();
     w.matrix("rotation", 3, &row_major)?;
     w.matrix("translation_mm", 3, s.pose.translation.vector.as_slice())?;
     w.finish()
@@ -189,12 +249,17 @@ pub fn read_turntable_axis(path: &Path) -> Result<(Point3<f64>, Unit<Vector3<f64
     let r = Reader::open(path)?;
     let p = r.matrix("axis_point_mm", &[(3, 1), (1, 3)])?;
     let d = r.matrix("axis_direction", &[(3, 1), (1, 3)])?;
-    let dir = Unit::try_new(Vector3::new(d[0], d[1], d[2]), 1e-12).ok_or_else(|| err(path, "axis_direction is zero"))?;
+    let dir = Unit::try_new(Vector3::new(d[0], d[1], d[2]), 1e-12)
+        .ok_or_else(|| err(path, "axis_direction is zero"))?;
     Ok((Point3::new(p[0], p[1], p[2]), dir))
 }
 
 /// Writes a turntable file.
-pub fn write_turntable_axis(path: &Path, point: &Point3<f64>, dir: &Unit<Vector3<f64>>) -> Result<(), CalibError> {
+pub fn write_turntable_axis(
+    path: &Path,
+    point: &Point3<f64>,
+    dir: &Unit<Vector3<f64>>,
+) -> Result<(), CalibError> {
     let mut w = Writer::new(path)?;
     w.matrix("axis_point_mm", 3, point.coords.as_slice())?;
     w.matrix("axis_direction", 3, dir.as_slice())?;

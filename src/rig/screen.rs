@@ -24,13 +24,20 @@ impl Screen {
 
     /// The screen as seen in another frame: `to_frame` maps camera coordinates to that frame.
     pub fn transformed(&self, to_frame: &Isometry3<f64>) -> Self {
-        Self { pose: to_frame * self.pose, ..self.clone() }
+        Self {
+            pose: to_frame * self.pose,
+            ..self.clone()
+        }
     }
 
     /// Where the ray `origin + t·dir` (t > 0, same frame as the pose) meets the monitor plane:
     /// the point (mm) and its monitor pixel coordinates; `None` if it runs parallel, points away
     /// or lands outside the pixel area.
-    pub fn intersect(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<(Point3<f64>, Point2<f64>)> {
+    pub fn intersect(
+        &self,
+        origin: &Point3<f64>,
+        dir: &Vector3<f64>,
+    ) -> Option<(Point3<f64>, Point2<f64>)> {
         let inv = self.pose.inverse();
         let (o, d) = (inv * origin, inv * dir);
         if d.z.abs() < 1e-300 {
@@ -42,7 +49,8 @@ impl Screen {
         }
         let q = o + d * t;
         let px = Point2::new(q.x / self.pitch_mm, q.y / self.pitch_mm);
-        let inside = (-0.5..self.width_px as f64 - 0.5).contains(&px.x) && (-0.5..self.height_px as f64 - 0.5).contains(&px.y);
+        let inside = (-0.5..self.width_px as f64 - 0.5).contains(&px.x)
+            && (-0.5..self.height_px as f64 - 0.5).contains(&px.y);
         inside.then(|| (self.pose * Point3::new(q.x, q.y, 0.0), px))
     }
 }

@@ -6,7 +6,9 @@
 //! (perpendicular to the axis), x = y × z. View k sees the object rotated by θk about +y:
 //! `p_cam = M · R_y(θk) · p_world`, with M the world → camera transform at θ = 0.
 
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{
+    Isometry3, Matrix3, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3,
+};
 
 /// A turntable axis and the view angles.
 #[derive(Clone, Debug, PartialEq)]
@@ -27,7 +29,10 @@ impl Turntable {
         let z = (to_cam - y * y.dot(&to_cam)).try_normalize(1e-12)?;
         let x = y.cross(&z);
         let rot = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
-        Some(Isometry3::from_parts(Translation3::from(self.axis_point.coords), UnitQuaternion::from_rotation_matrix(&rot)))
+        Some(Isometry3::from_parts(
+            Translation3::from(self.axis_point.coords),
+            UnitQuaternion::from_rotation_matrix(&rot),
+        ))
     }
 
     /// The world → camera transform of each view.

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
-use opencv::core::{Mat, MatTraitConst, Size, Vec3f, Vec4f, Vector};
+use opencv::core::{Mat, MatTraitConst, Size, Vec3w, Vec4w, Vector};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -52,6 +52,8 @@ pub struct SimulateOptions {
     pub screen_distance_mm: f64,
     /// Share of the image height the object fills.
     pub fill: f64,
+    /// Normals the simulated object refracts with: interpolated by default (a real glass object
+    /// is smooth; flat facets would add facet-edge artefacts a real capture does not have).
     pub normals: NormalModel,
     /// Fresnel transmission losses.
     pub fresnel: bool,
@@ -76,7 +78,7 @@ impl Default for SimulateOptions {
             camera_distance_mm: 550.0,
             screen_distance_mm: 250.0,
             fill: 0.6,
-            normals: NormalModel::Face,
+            normals: NormalModel::Vertex,
             fresnel: true,
         }
     }
@@ -99,19 +101,34 @@ pub struct SimulateReport {
     pub median_footprint_px: f64,
     /// The same without the object (the direct view of the monitor).
     pub direct_footprint_px: f64,
+    /// Scale s of the fixed-point monitor coordinates in the truth PNGs (see `write_truth`).
+    pub fixed_point_scale: f64,
     pub seconds: f64,
 }
 
 /// Places `mesh` (centred on the turntable axis) in a DRT-like rig and writes a scan to `out`.
-pub fn simulate(mesh: &TriMesh, out: &Path, o: &SimulateOptions, mut progress: impl FnMut(usize)) -> Result<SimulateReport> {
+pub fn simulate(
+    mesh: &TriMesh,
+    out: &Path,
+    o: &SimulateOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<SimulateReport> {
     let t0 = Instant::now();
     check_options(o)?;
     ensure_valid(mesh).context("the mesh to simulate is not a valid closed surface")?;
     let (lo, hi) = mesh.bbox().expect("a valid mesh has vertices");
     let mut placed = mesh.clone();
     placed.scale_translate(1.0, -(lo.coords + hi.coords) / 2.0);
-    let radius_xz = placed.positions.iter().map(|p| p.x.hypot(p.z)).fold(0.0, f64::max);
-    let bound_radius = placed.positions.iter().map(|p| p.coords.norm()).fold(0.0, f64::max);
+    let radius_xz = placed
+        .positions
+        .iter()
+        .map(|p| p.x.hypot(p.z))
+        .fold(0.0, f64::max);
+    let bound_radius = placed
+        .positions
+        .iter()
+        .map(|p| p.coords.norm())
+        .fold(0.0, f64::max);
     let height_y = hi.y - lo.y;
     let d = o.camera_distance_mm;
     if bound_radius * 1.2 >= d {
@@ -122,7 +139,8 @@ pub fn simulate(mesh: &TriMesh, out: &Path, o: &SimulateOptions, mut progress: i
     }
 
     // Camera: the object fills `fill` of the image height, and fits the width.
-    let f = (o.fill * o.height as f64 * d / height_y).min(0.9 * o.width as f64 * (d - radius_xz) / (2.0 * radius_xz));
+    let f = (o.fill * o.height as f64 * d / height_y)
+        .min(0.9 * o.width as f64 * (d - radius_xz) / (2.0 * radius_xz));
     let camera = Camera {
         width: o.width,
         height: o.height,
@@ -147,10 +165,6 @@ pub fn simulate(mesh: &TriMesh, out: &Path, o: &SimulateOptions, mut progress: i
             UnitQuaternion::identity(),
         ),
     };
-    let centre_ray = camera.pixel_ray(camera.cx, camera.cy).expect("no distortion");
-    if screen.intersect(&Point3::origin(), &centre_ray).is_none() {
-        bail!("the camera cannot see the monitor");
-    }
     // Turntable: vertical axis (world +y up = camera −y) through (0, 0, d).
     let turntable = Turntable {
         axis_point: Point3::new(0.0, 0.0, d),
@@ -166,22 +180,34 @@ pub fn simulate(mesh: &TriMesh, out: &Path, o: &SimulateOptions, mut progress: i
                 screen: "screen.yml".into(),
                 turntable: "turntable.yml".into(),
             },
-            views: Views { angles_deg: turntable.angles_deg.clone() },
-            patterns: Patterns { kind: PatternKind::Graycode, width: o.screen_width, height: o.screen_height },
+            views: Views {
+                angles_deg: turntable.angles_deg.clone(),
+            },
+            patterns: Patterns {
+                kind: PatternKind::Graycode,
+                width: o.screen_width,
+                height: o.screen_height,
+            },
         },
         camera,
         screen,
         turntable,
     };
     let truth = out.join("truth");
-    std::fs::create_dir_all(&truth).with_context(|| format!("cannot create {}", truth.display()))?;
+    std::fs::create_dir_all(&truth)
+        .with_context(|| format!("cannot create {}", truth.display()))?;
     scan.save()?;
     write_mesh(&out.join("ground_truth.ply"), &placed)?;
 
     let surface = MeshSurface::new(&placed, o.normals)?;
     let code = scan.graycode();
-    let settings = PathSettings { ior: o.ior, ior_air: IOR_AIR, max_refractions: o.max_refractions };
+    let settings = PathSettings {
+        ior: o.ior,
+        ior_air: IOR_AIR,
+        max_refractions: o.max_refractions,
+    };
     let mut tally = Tally::default();
+    let report_scale = fixed_point_scale(o.screen_width, o.screen_height);
     let poses = scan.view_poses();
     let setup = |pose: Isometry3<f64>, surface| ViewSetup {
         camera: &scan.camera,
@@ -195,6 +221,16 @@ pub fn simulate(mesh: &TriMesh, out: &Path, o: &SimulateOptions, mut progress: i
     };
     // Background: the monitor without the object (the same for every view).
     let background = trace_view(&setup(poses[0], None), o.spp)?;
+    let seen = background
+        .iter()
+        .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
+        .count();
+    if seen * 100 < background.len() {
+        bail!(
+            "the camera cannot see the monitor: {:.2} % of the image shows it (check the screen size, pitch and distance)",
+            100.0 * seen as f64 / background.len() as f64
+        );
+    }
     let direct_footprint_px = median(footprints(&background, o.spp, |_| true));
     if !o.decoded_only {
         write_captures(&scan.background_dir(), &background, o, &code, o.seed ^ 0xb6)?;
@@ -202,14 +238,21 @@ pub fn simulate(mesh: &TriMesh, out: &Path, o: &SimulateOptions, mut progress: i
     for (k, pose) in poses.iter().enumerate() {
         let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
         tally.add(&samples, o.spp);
-        write_truth(&truth, k, &samples, &scan.camera, o.spp)?;
+        write_truth(&truth, k, &samples, &scan.camera, o.spp, report_scale)?;
         if !o.decoded_only {
-            write_captures(&scan.view_dir(k), &samples, o, &code, o.seed.wrapping_add(k as u64))?;
+            write_captures(
+                &scan.view_dir(k),
+                &samples,
+                o,
+                &code,
+                o.seed.wrapping_add(k as u64),
+            )?;
         }
         progress(k);
     }
     let mut report = tally.report(o.views);
     report.direct_footprint_px = direct_footprint_px;
+    report.fixed_point_scale = report_scale;
     report.seconds = t0.elapsed().as_secs_f64();
     crate::util::atomic::write_atomic(&truth.join("summary.json"), |w| {
         serde_json::to_writer_pretty(&mut *w, &report)?;
@@ -220,13 +263,24 @@ pub fn simulate(mesh: &TriMesh, out: &Path, o: &SimulateOptions, mut progress: i
 
 fn check_options(o: &SimulateOptions) -> Result<()> {
     if o.width == 0 || o.height == 0 {
-        bail!("image size {}x{}: both must be at least 1 pixel", o.width, o.height);
+        bail!(
+            "image size {}x{}: both must be at least 1 pixel",
+            o.width,
+            o.height
+        );
     }
     if o.screen_width < 2 || o.screen_height < 2 {
-        bail!("screen size {}x{}: both must be at least 2 pixels", o.screen_width, o.screen_height);
+        bail!(
+            "screen size {}x{}: both must be at least 2 pixels",
+            o.screen_width,
+            o.screen_height
+        );
     }
     if !(o.ior > 1.0 && o.ior.is_finite()) {
-        bail!("--ior {}: a solid object's refractive index is above 1", o.ior);
+        bail!(
+            "--ior {}: a solid object's refractive index is above 1",
+            o.ior
+        );
     }
     if !(o.pitch_mm > 0.0 && o.camera_distance_mm > 0.0 && o.screen_distance_mm > 0.0) {
         bail!("pitch and distances must be positive");
@@ -244,26 +298,46 @@ fn check_options(o: &SimulateOptions) -> Result<()> {
 }
 
 /// Writes the capture images of one view (or of the background) into `dir`.
-fn write_captures(dir: &Path, samples: &[Sample], o: &SimulateOptions, code: &GrayCode, seed: u64) -> Result<()> {
+fn write_captures(
+    dir: &Path,
+    samples: &[Sample],
+    o: &SimulateOptions,
+    code: &GrayCode,
+    seed: u64,
+) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let names = code.file_names();
-    names.par_iter().enumerate().try_for_each(|(i, name)| -> Result<()> {
-        let mut img = shade(samples, o.spp, code, i);
-        if o.noise > 0.0 {
-            let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_mul(1000).wrapping_add(i as u64));
-            let normal = Normal::new(0.0, o.noise).expect("positive sigma");
-            for p in &mut img {
-                *p += normal.sample(&mut rng) as f32;
+    names
+        .par_iter()
+        .enumerate()
+        .try_for_each(|(i, name)| -> Result<()> {
+            let mut img = shade(samples, o.spp, code, i);
+            if o.noise > 0.0 {
+                let mut rng =
+                    ChaCha8Rng::seed_from_u64(seed.wrapping_mul(1000).wrapping_add(i as u64));
+                let normal = Normal::new(0.0, o.noise).expect("positive sigma");
+                for p in &mut img {
+                    *p += normal.sample(&mut rng) as f32;
+                }
             }
-        }
-        let bytes: Vec<u8> = img.iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect();
-        let mat = Mat::new_rows_cols_with_data(o.height as i32, o.width as i32, &bytes)?;
-        let mut out = mat.try_clone()?;
-        if o.blur_px > 0.0 {
-            opencv::imgproc::gaussian_blur(&mat, &mut out, Size::new(0, 0), o.blur_px, o.blur_px, opencv::core::BORDER_REPLICATE)?;
-        }
-        write_image(&dir.join(name), &out)
-    })
+            let bytes: Vec<u8> = img
+                .iter()
+                .map(|v| v.round().clamp(0.0, 255.0) as u8)
+                .collect();
+            let mat = Mat::new_rows_cols_with_data(o.height as i32, o.width as i32, &bytes)?;
+            let mut out = mat.try_clone()?;
+            if o.blur_px > 0.0 {
+                opencv::imgproc::gaussian_blur(
+                    &mat,
+                    &mut out,
+                    Size::new(0, 0),
+                    o.blur_px,
+                    o.blur_px,
+                    opencv::core::BORDER_REPLICATE,
+                )?;
+            }
+            write_image(&dir.join(name), &out)
+        })
 }
 
 /// Writes an image atomically through OpenCV (fast PNG compression).
@@ -278,34 +352,98 @@ fn write_image(path: &Path, img: &impl opencv::core::ToInputArray) -> Result<()>
     Ok(())
 }
 
-/// Ground truth of one view: the pixel-centre map, the footprints and the mask.
-fn write_truth(dir: &Path, k: usize, samples: &[Sample], cam: &Camera, spp: u32) -> Result<()> {
+/// Ground truth of one view, as 16-bit PNGs (read with OpenCV `imread(…, IMREAD_UNCHANGED)`,
+/// which keeps the channel order below; see the README):
+/// - `view_NNN_centre.png`, 3 channels: (u + 1)·s, (v + 1)·s of the pixel-centre ray's monitor
+///   point (monitor pixels), and its outcome code + 16 (see [`Outcome::code`]);
+/// - `view_NNN_footprint.png`, 4 channels: (u + 1)·s, (v + 1)·s of the centroid of the pixel's
+///   area samples that reached the monitor, their RMS spread · s, and the share of them · 65535;
+/// - `view_NNN_mask.png`: 255 where the pixel-centre ray meets the object.
+///
+/// s = `fixed_point_scale` of `truth/summary.json`; 65535 marks "no monitor point".
+fn write_truth(
+    dir: &Path,
+    k: usize,
+    samples: &[Sample],
+    cam: &Camera,
+    spp: u32,
+    scale: f64,
+) -> Result<()> {
     let (w, h) = (cam.width as i32, cam.height as i32);
-    let mut centre = Vec::with_capacity(samples.len() / spp as usize);
-    let mut foot = Vec::with_capacity(centre.capacity());
-    let mut mask = Vec::with_capacity(centre.capacity());
+    let fixed = |x: f64| {
+        if x.is_finite() {
+            ((x + 1.0) * scale).round().clamp(0.0, 65534.0) as u16
+        } else {
+            u16::MAX
+        }
+    };
+    let n_px = samples.len() / spp as usize;
+    let (mut centre, mut foot, mut mask) = (
+        Vec::with_capacity(n_px),
+        Vec::with_capacity(n_px),
+        Vec::with_capacity(n_px),
+    );
     for px in samples.chunks(spp as usize) {
         let c = px[0];
         let (u, v) = match c.outcome {
-            Outcome::Monitor(_) => (c.monitor.x as f32, c.monitor.y as f32),
-            _ => (f32::NAN, f32::NAN),
+            Outcome::Monitor(_) => (c.monitor.x, c.monitor.y),
+            _ => (f64::NAN, f64::NAN),
         };
-        centre.push(Vec3f::from([u, v, c.outcome.code()]));
+        centre.push(Vec3w::from([
+            fixed(u),
+            fixed(v),
+            (c.outcome.code() + 16.0) as u16,
+        ]));
         mask.push(if c.outcome.hit_object() { 255u8 } else { 0 });
-        let on: Vec<&Sample> = px.iter().filter(|s| matches!(s.outcome, Outcome::Monitor(_))).collect();
+        let on: Vec<&Sample> = px
+            .iter()
+            .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
+            .collect();
         let n = on.len() as f64;
-        if on.is_empty() {
-            foot.push(Vec4f::from([f32::NAN, f32::NAN, f32::NAN, 0.0]));
+        let (mu, mv, spread) = if on.is_empty() {
+            (f64::NAN, f64::NAN, f64::NAN)
         } else {
-            let (mu, mv) = (on.iter().map(|s| s.monitor.x).sum::<f64>() / n, on.iter().map(|s| s.monitor.y).sum::<f64>() / n);
-            let spread = (on.iter().map(|s| (s.monitor.x - mu).powi(2) + (s.monitor.y - mv).powi(2)).sum::<f64>() / n).sqrt();
-            foot.push(Vec4f::from([mu as f32, mv as f32, spread as f32, (n / spp as f64) as f32]));
-        }
+            let (mu, mv) = (
+                on.iter().map(|s| s.monitor.x).sum::<f64>() / n,
+                on.iter().map(|s| s.monitor.y).sum::<f64>() / n,
+            );
+            let s2 = on
+                .iter()
+                .map(|s| (s.monitor.x - mu).powi(2) + (s.monitor.y - mv).powi(2))
+                .sum::<f64>()
+                / n;
+            (mu, mv, s2.sqrt())
+        };
+        let spread_fixed = if spread.is_finite() {
+            (spread * scale).round().min(65534.0) as u16
+        } else {
+            u16::MAX
+        };
+        foot.push(Vec4w::from([
+            fixed(mu),
+            fixed(mv),
+            spread_fixed,
+            (65535.0 * n / spp as f64).round() as u16,
+        ]));
     }
-    write_image(&dir.join(format!("view_{k:03}_centre.tiff")), &Mat::new_rows_cols_with_data(h, w, &centre)?)?;
-    write_image(&dir.join(format!("view_{k:03}_footprint.tiff")), &Mat::new_rows_cols_with_data(h, w, &foot)?)?;
-    write_image(&dir.join(format!("view_{k:03}_mask.png")), &Mat::new_rows_cols_with_data(h, w, &mask)?)?;
+    write_image(
+        &dir.join(format!("view_{k:03}_centre.png")),
+        &Mat::new_rows_cols_with_data(h, w, &centre)?,
+    )?;
+    write_image(
+        &dir.join(format!("view_{k:03}_footprint.png")),
+        &Mat::new_rows_cols_with_data(h, w, &foot)?,
+    )?;
+    write_image(
+        &dir.join(format!("view_{k:03}_mask.png")),
+        &Mat::new_rows_cols_with_data(h, w, &mask)?,
+    )?;
     Ok(())
+}
+
+/// The fixed-point scale of the truth PNGs: as fine as 16 bits allow for the monitor's size.
+pub fn fixed_point_scale(screen_width: u32, screen_height: u32) -> f64 {
+    (65534.0 / (screen_width.max(screen_height) as f64 + 1.0)).floor()
 }
 
 /// Footprint areas (monitor pixels) of the pixels all of whose area samples reached the monitor
@@ -318,17 +456,33 @@ fn footprints(samples: &[Sample], spp: u32, keep: impl Fn(u32) -> bool) -> Vec<f
     }
     let offsets = render::sample_offsets(spp);
     let n = spp as f64;
-    let (ox, oy) = (offsets.iter().map(|o| o.0).sum::<f64>() / n, offsets.iter().map(|o| o.1).sum::<f64>() / n);
-    let s0 = offsets.iter().map(|o| (o.0 - ox).powi(2) + (o.1 - oy).powi(2)).sum::<f64>() / n;
+    let (ox, oy) = (
+        offsets.iter().map(|o| o.0).sum::<f64>() / n,
+        offsets.iter().map(|o| o.1).sum::<f64>() / n,
+    );
+    let s0 = offsets
+        .iter()
+        .map(|o| (o.0 - ox).powi(2) + (o.1 - oy).powi(2))
+        .sum::<f64>()
+        / n;
     samples
         .chunks(spp as usize)
         .filter_map(|px| {
-            let Outcome::Monitor(k) = px[0].outcome else { return None };
+            let Outcome::Monitor(k) = px[0].outcome else {
+                return None;
+            };
             if !keep(k) || px.iter().any(|s| s.outcome != px[0].outcome) {
                 return None;
             }
-            let (mu, mv) = (px.iter().map(|s| s.monitor.x).sum::<f64>() / n, px.iter().map(|s| s.monitor.y).sum::<f64>() / n);
-            let s2 = px.iter().map(|s| (s.monitor.x - mu).powi(2) + (s.monitor.y - mv).powi(2)).sum::<f64>() / n;
+            let (mu, mv) = (
+                px.iter().map(|s| s.monitor.x).sum::<f64>() / n,
+                px.iter().map(|s| s.monitor.y).sum::<f64>() / n,
+            );
+            let s2 = px
+                .iter()
+                .map(|s| (s.monitor.x - mu).powi(2) + (s.monitor.y - mv).powi(2))
+                .sum::<f64>()
+                / n;
             Some(s2 / s0)
         })
         .collect()
@@ -393,8 +547,8 @@ impl Tally {
             grazing_normal: self.grazing as f64 / n,
             median_footprint_px: median(self.footprints),
             direct_footprint_px: f64::NAN,
+            fixed_point_scale: 0.0,
             seconds: 0.0,
         }
     }
 }
-

@@ -17,7 +17,9 @@ pub enum Outcome {
     TotalInternalReflection,
     TooManyInterfaces,
     /// Left the object but missed the monitor (or missed both).
-    MissedMonitor { refractions: u32 },
+    MissedMonitor {
+        refractions: u32,
+    },
     GrazingNormal,
 }
 
@@ -36,7 +38,10 @@ impl Outcome {
 
     /// Did the ray meet the object?
     pub fn hit_object(&self) -> bool {
-        !matches!(self, Outcome::Monitor(0) | Outcome::MissedMonitor { refractions: 0 })
+        !matches!(
+            self,
+            Outcome::Monitor(0) | Outcome::MissedMonitor { refractions: 0 }
+        )
     }
 }
 
@@ -55,7 +60,14 @@ pub struct Sample {
 pub fn sample_offsets(spp: u32) -> Vec<(f64, f64)> {
     const A1: f64 = 0.754_877_666_246_692_7;
     const A2: f64 = 0.569_840_290_998_053_2;
-    (0..spp).map(|j| ((0.5 + j as f64 * A1).fract() - 0.5, (0.5 + j as f64 * A2).fract() - 0.5)).collect()
+    (0..spp)
+        .map(|j| {
+            (
+                (0.5 + j as f64 * A1).fract() - 0.5,
+                (0.5 + j as f64 * A2).fract() - 0.5,
+            )
+        })
+        .collect()
 }
 
 /// Everything a view needs, in the world frame.
@@ -84,7 +96,9 @@ pub fn trace_view(v: &ViewSetup, spp: u32) -> Result<Vec<Sample>, TraceError> {
         .flat_map_iter(|p| {
             let (x, y) = ((p % w) as f64, (p / w) as f64);
             offsets.iter().map(move |(dx, dy)| {
-                v.camera.pixel_ray(x + dx, y + dy).map(|d| Ray::new(eye, to_world * d))
+                v.camera
+                    .pixel_ray(x + dx, y + dy)
+                    .map(|d| Ray::new(eye, to_world * d))
             })
         })
         .collect();
@@ -96,12 +110,17 @@ pub fn trace_view(v: &ViewSetup, spp: u32) -> Result<Vec<Sample>, TraceError> {
         oc.norm_squared() - b * b <= r2 && (b < 0.0 || oc.norm_squared() <= r2)
     };
     let candidates: Vec<usize> = match v.surface {
-        Some(_) => (0..rays.len()).filter(|&i| rays[i].as_ref().is_some_and(may_hit)).collect(),
+        Some(_) => (0..rays.len())
+            .filter(|&i| rays[i].as_ref().is_some_and(may_hit))
+            .collect(),
         None => Vec::new(),
     };
     let traced = match v.surface {
         Some(s) => {
-            let batch: Vec<Ray> = candidates.iter().map(|&i| rays[i].expect("filtered")).collect();
+            let batch: Vec<Ray> = candidates
+                .iter()
+                .map(|&i| rays[i].expect("filtered"))
+                .collect();
             trace_paths(s, &batch, &v.settings)?
         }
         None => Vec::new(),
@@ -109,7 +128,11 @@ pub fn trace_view(v: &ViewSetup, spp: u32) -> Result<Vec<Sample>, TraceError> {
     let mut samples: Vec<Sample> = rays
         .par_iter()
         .map(|r| match r {
-            None => Sample { outcome: Outcome::MissedMonitor { refractions: 0 }, monitor: Point2::origin(), weight: 0.0 },
+            None => Sample {
+                outcome: Outcome::MissedMonitor { refractions: 0 },
+                monitor: Point2::origin(),
+                weight: 0.0,
+            },
             Some(r) => land(&screen, &r.origin, &r.dir, 0, 1.0),
         })
         .collect();
@@ -126,12 +149,26 @@ pub fn trace_view(v: &ViewSetup, spp: u32) -> Result<Vec<Sample>, TraceError> {
 }
 
 fn dark(outcome: Outcome) -> Sample {
-    Sample { outcome, monitor: Point2::origin(), weight: 0.0 }
+    Sample {
+        outcome,
+        monitor: Point2::origin(),
+        weight: 0.0,
+    }
 }
 
-fn land(screen: &Screen, o: &Point3<f64>, d: &Vector3<f64>, refractions: u32, weight: f64) -> Sample {
+fn land(
+    screen: &Screen,
+    o: &Point3<f64>,
+    d: &Vector3<f64>,
+    refractions: u32,
+    weight: f64,
+) -> Sample {
     match screen.intersect(o, d) {
-        Some((_, px)) => Sample { outcome: Outcome::Monitor(refractions), monitor: px, weight },
+        Some((_, px)) => Sample {
+            outcome: Outcome::Monitor(refractions),
+            monitor: px,
+            weight,
+        },
         None => dark(Outcome::MissedMonitor { refractions }),
     }
 }

@@ -64,13 +64,20 @@ impl MeshSurface {
                     n[v as usize] += c;
                 }
             }
-            n.into_iter().map(|v| v.try_normalize(0.0).unwrap_or_else(Vector3::zeros)).collect()
+            n.into_iter()
+                .map(|v| v.try_normalize(0.0).unwrap_or_else(Vector3::zeros))
+                .collect()
         });
         // Embree works in f32: a restarting ray must clear the float error of the surface, which
         // scales with the coordinates' magnitude, and stay well below any real thickness.
         let (lo, hi) = mesh.bbox().expect("a mesh with vertices");
         let extent = (hi - lo).norm().max(lo.coords.amax()).max(hi.coords.amax());
-        Ok(Self { scene, mesh: mesh.clone(), vertex_normals, offset: 1e-6 * extent })
+        Ok(Self {
+            scene,
+            mesh: mesh.clone(),
+            vertex_normals,
+            offset: 1e-6 * extent,
+        })
     }
 }
 
@@ -87,10 +94,16 @@ impl Surface for MeshSurface {
                     None => geometric_normal,
                     Some(n) => {
                         let [i, j, k] = self.mesh.faces[h.prim as usize].map(|v| v as usize);
-                        (n[i] * w + n[j] * h.u + n[k] * h.v).try_normalize(0.0).unwrap_or(geometric_normal)
+                        (n[i] * w + n[j] * h.u + n[k] * h.v)
+                            .try_normalize(0.0)
+                            .unwrap_or(geometric_normal)
                     }
                 };
-                SurfaceHit { point, geometric_normal, shading_normal }
+                SurfaceHit {
+                    point,
+                    geometric_normal,
+                    shading_normal,
+                }
             });
         }
         Ok(())
@@ -115,7 +128,11 @@ pub struct PathSettings {
 impl PathSettings {
     /// Index `ior` in air, at most `max_refractions` refractions.
     pub fn new(ior: f64, max_refractions: u32) -> Self {
-        Self { ior, ior_air: IOR_AIR, max_refractions }
+        Self {
+            ior,
+            ior_air: IOR_AIR,
+            max_refractions,
+        }
     }
 }
 
@@ -145,10 +162,20 @@ pub struct Path {
 }
 
 /// Traces `rays` (unit directions) through `surface`.
-pub fn trace_paths(surface: &dyn Surface, rays: &[Ray], settings: &PathSettings) -> Result<Vec<Path>, TraceError> {
+pub fn trace_paths(
+    surface: &dyn Surface,
+    rays: &[Ray],
+    settings: &PathSettings,
+) -> Result<Vec<Path>, TraceError> {
     let mut paths: Vec<Path> = rays
         .iter()
-        .map(|r| Path { end: PathEnd::Left, refractions: 0, origin: r.origin, dir: r.dir, transmittance: 1.0 })
+        .map(|r| Path {
+            end: PathEnd::Left,
+            refractions: 0,
+            origin: r.origin,
+            dir: r.dir,
+            transmittance: 1.0,
+        })
         .collect();
     let mut active: Vec<usize> = (0..rays.len()).collect();
     let mut batch = Vec::new();
@@ -158,7 +185,11 @@ pub fn trace_paths(surface: &dyn Surface, rays: &[Ray], settings: &PathSettings)
         batch.extend(active.iter().map(|&i| {
             let (p, r) = (&paths[i], &rays[i]);
             // The first segment keeps the caller's interval; later ones start at the offset point.
-            if p.refractions == 0 { *r } else { Ray::new(p.origin, p.dir) }
+            if p.refractions == 0 {
+                *r
+            } else {
+                Ray::new(p.origin, p.dir)
+            }
         }));
         hits.clear();
         hits.resize(batch.len(), None);
@@ -186,9 +217,21 @@ pub fn trace_paths(surface: &dyn Surface, rays: &[Ray], settings: &PathSettings)
 /// The path after meeting the surface at `h`.
 fn step(p: &Path, h: &SurfaceHit, s: &PathSettings, offset: f64) -> Path {
     let entering = p.dir.dot(&h.geometric_normal) < 0.0;
-    let (n_i, n_t) = if entering { (s.ior_air, s.ior) } else { (s.ior, s.ior_air) };
-    let n = if entering { h.shading_normal } else { -h.shading_normal };
-    let ended = |end| Path { end, origin: h.point, ..*p };
+    let (n_i, n_t) = if entering {
+        (s.ior_air, s.ior)
+    } else {
+        (s.ior, s.ior_air)
+    };
+    let n = if entering {
+        h.shading_normal
+    } else {
+        -h.shading_normal
+    };
+    let ended = |end| Path {
+        end,
+        origin: h.point,
+        ..*p
+    };
     if p.refractions >= s.max_refractions {
         return ended(PathEnd::TooManyInterfaces);
     }

@@ -41,5 +41,10 @@ pub fn refract(d: &Vector3<f64>, n: &Vector3<f64>, n_i: f64, n_t: f64) -> Option
     let dir = d * eta + n * (eta * cos_i - cos_t);
     let rs = ((n_i * cos_i - n_t * cos_t) / (n_i * cos_i + n_t * cos_t)).powi(2);
     let rp = ((n_i * cos_t - n_t * cos_i) / (n_i * cos_t + n_t * cos_i)).powi(2);
-    Some(Refraction { dir, cos_i, cos_t, transmittance: 1.0 - 0.5 * (rs + rp) })
+    Some(Refraction {
+        dir,
+        cos_i,
+        cos_t,
+        transmittance: 1.0 - 0.5 * (rs + rp),
+    })
 }
