@@ -6,7 +6,7 @@
 DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev clang libclang-dev cmake pkg-config
 CARGO ?= cargo
 
-.PHONY: deps demo test bench bench-remesh clean
+.PHONY: deps demo test bench bench-remesh bench-simulate clean
 
 # Installs missing Debian packages when run as root; otherwise prints the exact command and stops.
 deps:
@@ -43,6 +43,10 @@ bench-remesh: deps
 	@[ -x $(PYMESHLAB_VENV)/bin/python ] && $(PYMESHLAB_VENV)/bin/python -c "import pymeshlab" 2>/dev/null || \
 	  { python3 -m venv $(PYMESHLAB_VENV) && $(PYMESHLAB_VENV)/bin/pip install -q pymeshlab; }
 	$(CARGO) run --release -- bench remesh --meshes $(dir $(MESH)) --python $(PYMESHLAB_VENV)/bin/python --json target/bench-remesh.json
+
+# A full 72-view scan of the horse at 1280×960 (the simulator prints its own time and figures).
+bench-simulate: deps
+	$(CARGO) run --release -- simulate --mesh $(dir $(MESH))horse_scan.ply --out target/horse-scan --views 72 --size 1280x960
 
 clean:
 	$(CARGO) clean

@@ -1,5 +1,6 @@
 //! Calibration files in OpenCV's FileStorage format, both ways; the camera model; the turntable
 //! frames; the scan folder.
+#![allow(clippy::excessive_precision)] // the literals are the exact text of OpenCV's sample file
 
 use std::fs;
 

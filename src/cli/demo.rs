@@ -1,6 +1,6 @@
-//! `glasscan demo`: the zero-setup first run on a built-in object. For now it exercises the
-//! foundation end to end: make a pebble-like glass object, write and re-read it, validate it,
-//! evaluate a coarser tessellation of it against it, and benchmark ray tracing on it.
+//! `glasscan demo`: the zero-setup first run on a built-in object. For now it exercises what is
+//! built end to end: make a pebble-like glass object, write and re-read it, validate it, evaluate
+//! a coarser tessellation of it against it, benchmark ray tracing on it, and simulate a scan of it.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -14,6 +14,7 @@ use crate::eval::{evaluate, EvalOptions};
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::shapes::ellipsoid;
 use crate::mesh::validate::{ensure_valid, validate};
+use crate::simulate::{simulate, SimulateOptions};
 
 #[derive(Args, Debug)]
 pub struct DemoArgs {
@@ -73,8 +74,32 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         super::bench::table(&bench, bench_opts.width, bench_opts.height)
     );
 
+    outln!("\n== 4. a simulated scan of the pebble: 8 views, 640×480, captures and ground truth");
+    let sim = SimulateOptions {
+        views: 8,
+        width: 640,
+        height: 480,
+        seed: args.seed,
+        ..Default::default()
+    };
+    let scan_dir = args.out.join("scan");
+    let r = simulate(&object, &scan_dir, &sim, |_| ())?;
     outln!(
-        "\ndemo done in {:.1} s; files in {}: object.ply, coarse.obj, eval.json",
+        "object pixels {}: {:.1} % reach the monitor through exactly 2 refractions, {:.1} % through 4+, {:.1} % end in total internal reflection, {:.1} % miss the monitor",
+        r.object_pixels,
+        100.0 * r.two_refractions,
+        100.0 * r.more_refractions,
+        100.0 * r.total_internal_reflection,
+        100.0 * r.missed_monitor
+    );
+    outln!(
+        "a camera pixel sees {:.1} monitor pixels through the glass (median), {:.1} directly",
+        r.median_footprint_px,
+        r.direct_footprint_px
+    );
+
+    outln!(
+        "\ndemo done in {:.1} s; files in {}: object.ply, coarse.obj, eval.json, scan/",
         t0.elapsed().as_secs_f64(),
         args.out.display()
     );
