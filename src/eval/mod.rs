@@ -95,21 +95,15 @@ pub fn evaluate(
     let ref_scene = Scene::new(&device, reference, BuildMode::Static)?;
     let res_scene = Scene::new(&device, result, BuildMode::Static)?;
 
-    let distances = |from: &TriMesh, to: &Scene, seed: u64| -> Result<Vec<f64>, TraceError> {
-        let pts: Vec<Point3<f64>> = sample_surface(from, options.samples, seed)
-            .into_iter()
-            .map(|(p, _)| p)
-            .collect();
-        Ok(to
-            .closest_points(&pts)?
-            .into_iter()
-            .map(|c| c.dist)
-            .collect())
-    };
     // Different seeds on the two sides, so that evaluating a mesh against itself does not sample
     // the very same points twice.
-    let d_res = distances(result, &ref_scene, options.seed)?;
-    let d_ref = distances(reference, &res_scene, options.seed.wrapping_add(1))?;
+    let d_res = sampled_distances(result, &ref_scene, options.samples, options.seed)?;
+    let d_ref = sampled_distances(
+        reference,
+        &res_scene,
+        options.samples,
+        options.seed.wrapping_add(1),
+    )?;
     let d_vert: Vec<f64> = ref_scene
         .closest_points(&result.positions)?
         .into_iter()

@@ -83,6 +83,21 @@ impl TriMesh {
             .sum()
     }
 
+    /// Area-weighted vertex normals (unit; zero for a vertex whose faces all have zero area, or
+    /// that no face uses).
+    pub fn vertex_normals(&self) -> Vec<Vector3<f64>> {
+        let mut n = vec![Vector3::zeros(); self.positions.len()];
+        for (f, t) in self.faces.iter().enumerate() {
+            let c = self.face_cross(f);
+            for &v in t {
+                n[v as usize] += c;
+            }
+        }
+        n.into_iter()
+            .map(|v| v.try_normalize(0.0).unwrap_or_else(Vector3::zeros))
+            .collect()
+    }
+
     /// Vertex positions as packed f32 triples (Embree's vertex buffer format).
     pub fn positions_f32(&self) -> Vec<f32> {
         self.positions

@@ -158,7 +158,7 @@ impl<'a> Reference<'a> {
         opts: &RemeshOptions,
     ) -> Result<Self, TraceError> {
         let scene = Scene::new(device, mesh, BuildMode::Static)?;
-        let normals = vertex_normals(mesh);
+        let normals = mesh.vertex_normals();
         let sizing = match opts.adaptive {
             None => vec![opts.edge_mm; mesh.positions.len()],
             Some(a) => curvature_sizing(mesh, &normals, opts.edge_mm, a),
@@ -181,20 +181,6 @@ impl<'a> Reference<'a> {
         let w = barycentric(q, &self.mesh.corners(f as usize));
         values[a] * w[0] + values[b] * w[1] + values[c] * w[2]
     }
-}
-
-/// Area-weighted vertex normals (unit; zero for a vertex whose faces all have zero area).
-fn vertex_normals(mesh: &TriMesh) -> Vec<Vector3<f64>> {
-    let mut n = vec![Vector3::zeros(); mesh.positions.len()];
-    for (f, t) in mesh.faces.iter().enumerate() {
-        let c = mesh.face_cross(f);
-        for &v in t {
-            n[v as usize] += c;
-        }
-    }
-    n.into_iter()
-        .map(|v| v.try_normalize(0.0).unwrap_or_else(Vector3::zeros))
-        .collect()
 }
 
 /// Per-vertex target edge lengths from the largest normal curvature along the vertex's edges,

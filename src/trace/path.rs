@@ -56,18 +56,7 @@ impl MeshSurface {
     pub fn new(mesh: &TriMesh, normals: NormalModel) -> Result<Self, TraceError> {
         let device = Device::new()?;
         let scene = Scene::new(&device, mesh, BuildMode::Static)?;
-        let vertex_normals = (normals == NormalModel::Vertex).then(|| {
-            let mut n = vec![Vector3::zeros(); mesh.positions.len()];
-            for (f, t) in mesh.faces.iter().enumerate() {
-                let c = mesh.face_cross(f);
-                for &v in t {
-                    n[v as usize] += c;
-                }
-            }
-            n.into_iter()
-                .map(|v| v.try_normalize(0.0).unwrap_or_else(Vector3::zeros))
-                .collect()
-        });
+        let vertex_normals = (normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
         // Embree works in f32: a restarting ray must clear the float error of the surface, which
         // scales with the coordinates' magnitude, and stay well below any real thickness.
         let (lo, hi) = mesh.bbox().expect("a mesh with vertices");
