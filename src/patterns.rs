@@ -51,6 +51,87 @@ impl GrayCode {
         names.push("black.png".into());
         names
     }
+
+    /// What image `i` of the sequence shows, for the order file: e.g. "column bit 10 (most
+    /// significant), pattern".
+    pub fn describe(&self, i: usize) -> String {
+        let (nc, nr) = (self.column_bits() as usize, self.row_bits() as usize);
+        let n = self.pattern_count();
+        if i >= n {
+            return if i == n {
+                "white (shadow mask)".into()
+            } else {
+                "black (shadow mask)".into()
+            };
+        }
+        let (axis, bits, j) = if i < 2 * nc {
+            ("column", nc, i)
+        } else {
+            ("row", nr, i - 2 * nc)
+        };
+        let k = bits - 1 - j / 2;
+        let rank = if k == bits - 1 {
+            " (most significant)"
+        } else if k == 0 {
+            " (least significant)"
+        } else {
+            ""
+        };
+        format!(
+            "{axis} bit {k}{rank}, {}",
+            if j % 2 == 0 { "pattern" } else { "inverse" }
+        )
+    }
+
+    /// Writes the images to show on the monitor into `dir` (named as the captures are), through
+    /// OpenCV's own `GrayCodePattern::generate`, plus `ORDER.txt` saying what each one is.
+    pub fn write_images(&self, dir: &std::path::Path) -> anyhow::Result<()> {
+        use anyhow::Context;
+        use opencv::core::{Mat, Scalar, Vector, CV_8UC1};
+        use opencv::prelude::*;
+        use opencv::structured_light::{GrayCodePattern, GrayCodePattern_Params};
+
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let mut params = GrayCodePattern_Params::default()?;
+        params.set_width(self.width as i32);
+        params.set_height(self.height as i32);
+        let mut generator = GrayCodePattern::create(&params)?;
+        let mut images = Vector::<Mat>::new();
+        generator.generate(&mut images)?;
+        let (h, w) = (self.height as i32, self.width as i32);
+        images.push(Mat::new_rows_cols_with_default(
+            h,
+            w,
+            CV_8UC1,
+            Scalar::all(255.0),
+        )?);
+        images.push(Mat::new_rows_cols_with_default(
+            h,
+            w,
+            CV_8UC1,
+            Scalar::all(0.0),
+        )?);
+        let names = self.file_names();
+        if images.len() != names.len() {
+            anyhow::bail!(
+                "OpenCV generated {} images, expected {}",
+                images.len(),
+                names.len()
+            );
+        }
+        let mut order = format!(
+            "Gray-code patterns for a {}x{} monitor, in the order of OpenCV's structured_light::GrayCodePattern\n\
+             (generate(), then getImagesForShadowMasks()). Show them in this order; name the captures the same.\n\n",
+            self.width, self.height
+        );
+        for (i, (img, name)) in images.iter().zip(&names).enumerate() {
+            crate::util::image::write_png(&dir.join(name), &img)?;
+            order += &format!("{name}\t{}\n", self.describe(i));
+        }
+        let path = dir.join("ORDER.txt");
+        crate::util::atomic::write_atomic(&path, |w| w.write_all(order.as_bytes()))
+            .with_context(|| format!("cannot write {}", path.display()))
+    }
 }
 
 fn bits_for(n: u32) -> u32 {

@@ -273,3 +273,50 @@ fn remesh_writes_a_valid_mesh_and_refuses_bad_input() {
     }
     assert!(!d.join("never.ply").exists());
 }
+
+#[test]
+fn patterns_writes_opencvs_sequence_with_an_order_file() {
+    use opencv::core::MatTraitConst;
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("patterns");
+    let o = glasscan(&[
+        "patterns",
+        "--screen",
+        "1920x1080",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let names: Vec<String> = fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert_eq!(names.len(), 44 + 2 + 1, "{names:?}");
+    let order = fs::read_to_string(out.join("ORDER.txt")).unwrap();
+    assert!(
+        order.contains("00.png\tcolumn bit 10 (most significant), pattern"),
+        "{order}"
+    );
+    assert!(
+        order.contains("43.png\trow bit 0 (least significant), inverse"),
+        "{order}"
+    );
+    let px = |name: &str, x: i32, y: i32| {
+        let m =
+            opencv::imgcodecs::imread(out.join(name), opencv::imgcodecs::IMREAD_UNCHANGED).unwrap();
+        assert_eq!((m.cols(), m.rows()), (1920, 1080));
+        *m.at_2d::<u8>(y, x).unwrap()
+    };
+    // The most significant column bit: black left of column 1024, white from it on.
+    assert_eq!((px("00.png", 1023, 5), px("00.png", 1024, 5)), (0, 255));
+    assert_eq!((px("01.png", 1023, 5), px("01.png", 1024, 5)), (255, 0));
+    assert_eq!((px("white.png", 7, 7), px("black.png", 7, 7)), (255, 0));
+    let bad = glasscan(&[
+        "patterns",
+        "--screen",
+        "1x1080",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(bad.status.code(), Some(1), "{}", stderr(&bad));
+}

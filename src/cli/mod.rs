@@ -22,6 +22,7 @@ mod bench;
 mod demo;
 mod eval;
 mod info;
+mod patterns;
 mod remesh;
 mod simulate;
 
@@ -45,6 +46,8 @@ enum Command {
     Info(info::InfoArgs),
     /// Accuracy, completeness, F-scores, DRT's figure and Hausdorff distance against a reference.
     Eval(eval::EvalArgs),
+    /// The Gray-code images to show on the monitor, in OpenCV's order.
+    Patterns(patterns::PatternsArgs),
     /// A synthetic scan of a mesh: calibration, captures and ground truth.
     Simulate(simulate::SimulateArgs),
     /// Isotropic remeshing to a target edge length.
@@ -81,6 +84,7 @@ pub fn run() -> Result<()> {
     match cli.command {
         Command::Info(a) => info::run(&a),
         Command::Eval(a) => eval::run(&a),
+        Command::Patterns(a) => patterns::run(&a),
         Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),
         Command::Bench(b) => bench::run(&b),

@@ -69,7 +69,8 @@ pub struct SimulateArgs {
     pub no_fresnel: bool,
 }
 
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
+/// Parses WIDTHxHEIGHT (both at least 1).
+pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s
         .split_once(['x', 'X'])
         .ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x960"))?;

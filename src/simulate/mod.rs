@@ -5,12 +5,12 @@
 
 pub mod render;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
-use opencv::core::{Mat, MatTraitConst, Size, Vec3w, Vec4w, Vector};
+use opencv::core::{Mat, MatTraitConst, Size, Vec3w, Vec4w};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -25,6 +25,7 @@ use crate::rig::{Camera, Screen, Turntable};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::trace::path::{MeshSurface, NormalModel, PathSettings};
 use crate::trace::refract::IOR_AIR;
+use crate::util::image::write_png;
 use render::{shade, trace_view, Outcome, Sample, ViewSetup};
 
 /// Settings of a simulated scan (defaults: DRT's rig at 1280×960).
@@ -336,20 +337,8 @@ fn write_captures(
                     opencv::core::BORDER_REPLICATE,
                 )?;
             }
-            write_image(&dir.join(name), &out)
+            write_png(&dir.join(name), &out)
         })
-}
-
-/// Writes an image atomically through OpenCV (fast PNG compression).
-fn write_image(path: &Path, img: &impl opencv::core::ToInputArray) -> Result<()> {
-    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("png");
-    let tmp: PathBuf = path.with_extension(format!("tmp.{ext}"));
-    let params = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_PNG_COMPRESSION, 1]);
-    if !opencv::imgcodecs::imwrite(&tmp, img, &params)? {
-        bail!("OpenCV could not write {}", path.display());
-    }
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
 }
 
 /// Ground truth of one view, as 16-bit PNGs (read with OpenCV `imread(…, IMREAD_UNCHANGED)`,
@@ -426,15 +415,15 @@ fn write_truth(
             (65535.0 * n / spp as f64).round() as u16,
         ]));
     }
-    write_image(
+    write_png(
         &dir.join(format!("view_{k:03}_centre.png")),
         &Mat::new_rows_cols_with_data(h, w, &centre)?,
     )?;
-    write_image(
+    write_png(
         &dir.join(format!("view_{k:03}_footprint.png")),
         &Mat::new_rows_cols_with_data(h, w, &foot)?,
     )?;
-    write_image(
+    write_png(
         &dir.join(format!("view_{k:03}_mask.png")),
         &Mat::new_rows_cols_with_data(h, w, &mask)?,
     )?;

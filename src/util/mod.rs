@@ -1,3 +1,4 @@
-//! Small helpers shared by every stage: atomic file output.
+//! Small helpers shared by every stage: atomic file and image output.
 
 pub mod atomic;
+pub mod image;

@@ -1,0 +1,20 @@
+//! Image output through OpenCV, atomic like every output.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use opencv::core::Vector;
+
+/// Writes an image (8- or 16-bit PNG, fast compression) atomically: OpenCV writes a temporary
+/// file beside `path`, which is then renamed.
+pub fn write_png(path: &Path, img: &impl opencv::core::ToInputArray) -> Result<()> {
+    let tmp: PathBuf = path.with_extension("tmp.png");
+    let params = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_PNG_COMPRESSION, 1]);
+    if !opencv::imgcodecs::imwrite(&tmp, img, &params)
+        .with_context(|| format!("cannot write {}", path.display()))?
+    {
+        bail!("OpenCV could not write {}", path.display());
+    }
+    std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
