@@ -6,6 +6,7 @@
 
 pub mod bench;
 pub mod cli;
+pub mod decode;
 pub mod eval;
 pub mod mesh;
 pub mod patterns;

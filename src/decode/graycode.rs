@@ -1,0 +1,91 @@
+//! Whole-image Gray-code decoding with per-bit reliability.
+//!
+//! OpenCV's semantics per bit (`GrayCodePattern::getProjPixel`): the bit is 1 where the pattern
+//! image is brighter than its inverse, and it is unreliable where the two differ by less than
+//! the white threshold. OpenCV rejects a pixel if any bit is unreliable. Seen through solid glass,
+//! a camera pixel averages tens of monitor pixels, so the finest stripes blur to grey while the
+//! coarse bits stay clear: here the bits are kept from the most significant down to the first
+//! unreliable one, and the pixel gets the centre of the cell those bits pin down, with the cell's
+//! size as its uncertainty. Where every bit is reliable the result is OpenCV's exactly.
+
+use rayon::prelude::*;
+
+use crate::patterns::GrayCode;
+
+/// One decoded axis of a pixel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AxisDecode {
+    /// Monitor coordinate, pixels: the centre of the cell the reliable bits select.
+    pub coord: f32,
+    /// Width of that cell, monitor pixels (1 when every bit is reliable).
+    pub cell: u32,
+    /// Reliable bits, most significant first.
+    pub bits: u8,
+}
+
+/// A decoded pixel: columns (u) and rows (v).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelDecode {
+    pub u: AxisDecode,
+    pub v: AxisDecode,
+}
+
+impl PixelDecode {
+    /// Every bit reliable and inside the monitor: what OpenCV's `getProjPixel` accepts.
+    pub fn complete(&self, code: &GrayCode) -> bool {
+        self.u.bits as u32 == code.column_bits()
+            && self.v.bits as u32 == code.row_bits()
+            && (self.u.coord as u32) < code.width
+            && (self.v.coord as u32) < code.height
+    }
+}
+
+/// Decodes every pixel of a view from its pattern images (`code.pattern_count()` 8-bit images of
+/// one size, pixels in the same order, images in OpenCV's order); `white_threshold` as OpenCV's
+/// (grey levels).
+pub fn decode_view(images: &[&[u8]], code: &GrayCode, white_threshold: u8) -> Vec<PixelDecode> {
+    assert_eq!(images.len(), code.pattern_count(), "one image per pattern");
+    let n = images[0].len();
+    assert!(images.iter().all(|i| i.len() == n), "images of one size");
+    let (nc, nr) = (code.column_bits() as usize, code.row_bits() as usize);
+    (0..n)
+        .into_par_iter()
+        .map(|p| {
+            let axis = |first: usize, bits: usize| {
+                let mut gray = 0u32;
+                let mut kept = 0usize;
+                for k in 0..bits {
+                    let (a, b) = (
+                        images[first + 2 * k][p] as i32,
+                        images[first + 2 * k + 1][p] as i32,
+                    );
+                    if (a - b).unsigned_abs() < white_threshold as u32 {
+                        break;
+                    }
+                    gray = (gray << 1) | (a > b) as u32;
+                    kept += 1;
+                }
+                // Gray prefix → binary prefix (the prefix of the binary code is the binary of the
+                // Gray prefix), then the centre of the cell of 2^(bits − kept) values.
+                let mut bin = gray;
+                let mut shift = gray >> 1;
+                while shift != 0 {
+                    bin ^= shift;
+                    shift >>= 1;
+                }
+                let free = (bits - kept) as u32;
+                let cell = 1u32 << free;
+                let start = bin << free;
+                AxisDecode {
+                    coord: start as f32 + (cell as f32 - 1.0) / 2.0,
+                    cell,
+                    bits: kept as u8,
+                }
+            };
+            PixelDecode {
+                u: axis(0, nc),
+                v: axis(2 * nc, nr),
+            }
+        })
+        .collect()
+}

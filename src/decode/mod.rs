@@ -1,0 +1,3 @@
+//! Turning captures into monitor correspondences.
+
+pub mod graycode;
