@@ -1,6 +1,6 @@
 //! The Gray-code decoder against OpenCV's `getProjPixel` and against simulated ground truth.
 
-use glasscan::decode::graycode::decode_view;
+use glasscan::decode::graycode::{decode_view, BitTest};
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::patterns::GrayCode;
 use glasscan::simulate::{fixed_point_scale, simulate, SimulateOptions};
@@ -42,7 +42,20 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
         .map(|n| load(&format!("captures/view_000/{n}")))
         .collect();
     let slices: Vec<&[u8]> = mats.iter().map(|m| m.data_typed::<u8>().unwrap()).collect();
-    let decoded = decode_view(&slices, &code, 5);
+    let (white, black) = (
+        load("captures/view_000/white.png"),
+        load("captures/view_000/black.png"),
+    );
+    let (white, black) = (
+        white.data_typed::<u8>().unwrap(),
+        black.data_typed::<u8>().unwrap(),
+    );
+    // With no relative contrast test, exactly OpenCV's semantics.
+    let opencv_test = BitTest {
+        white_threshold: 5,
+        min_contrast: 0.0,
+    };
+    let decoded = decode_view(&slices, white, black, &code, opencv_test);
 
     let mut params = GrayCodePattern_Params::default().unwrap();
     params.set_width(code.width as i32);
@@ -107,4 +120,101 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
         inside as f64 >= 0.9 * checked as f64,
         "footprint centroid inside the cell for {inside} of {checked}"
     );
+}
+
+fn glasscan(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_glasscan"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    let opts = SimulateOptions {
+        views: 2,
+        width: 160,
+        height: 120,
+        screen_width: 320,
+        screen_height: 200,
+        pitch_mm: 1.2,
+        spp: 1,
+        ..Default::default()
+    };
+    simulate(
+        &ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4),
+        &scan,
+        &opts,
+        |_| (),
+    )
+    .unwrap();
+    let s = scan.to_str().unwrap();
+    let o = glasscan(&["decode", s, "--compare-ground-truth"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let overall = out.lines().last().unwrap();
+    let num = |after: &str| -> f64 {
+        let rest = &overall[overall.find(after).unwrap() + after.len()..];
+        rest.split_whitespace()
+            .next()
+            .unwrap()
+            .trim_end_matches(';')
+            .parse()
+            .unwrap()
+    };
+    assert!(num("mean mask IoU ") >= 0.995, "{overall}");
+    assert!(
+        out.contains("100.0 % within their uncertainty") || num("; of those ") >= 99.0,
+        "{overall}"
+    );
+    for f in [
+        "decoded/view_001_mask.png",
+        "decoded/view_001_monitor.png",
+        "decoded/preview/view_000.png",
+        "decoded/summary.json",
+    ] {
+        assert!(scan.join(f).is_file(), "{f}");
+    }
+
+    // A dark view is reported by name and gets no mask.
+    let black = scan.join("captures/view_001/black.png");
+    std::fs::copy(&black, scan.join("captures/view_001/white.png")).unwrap();
+    std::fs::remove_file(scan.join("decoded/view_001_mask.png")).unwrap();
+    let o = glasscan(&["decode", s, "--views", "1"]);
+    assert!(o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("view 1") && err.contains("monitor off"),
+        "{err}"
+    );
+    assert!(!scan.join("decoded/view_001_mask.png").exists());
+
+    // A missing image and an image of the wrong size are errors naming the file.
+    std::fs::remove_file(scan.join("captures/view_000/07.png")).unwrap();
+    let o = glasscan(&["decode", s, "--views", "0"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.code() == Some(1) && err.contains("07.png") && err.contains("missing"),
+        "{err}"
+    );
+    let small = Mat::new_rows_cols_with_default(
+        10,
+        10,
+        opencv::core::CV_8UC1,
+        opencv::core::Scalar::all(0.0),
+    )
+    .unwrap();
+    opencv::imgcodecs::imwrite(
+        scan.join("captures/view_000/07.png"),
+        &small,
+        &Vector::new(),
+    )
+    .unwrap();
+    let o = glasscan(&["decode", s, "--views", "0"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(1) && err.contains("10×10"), "{err}");
+    let o = glasscan(&["decode", s, "--views", "5"]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("views 0-1"));
 }

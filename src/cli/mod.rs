@@ -19,6 +19,7 @@ macro_rules! outln {
 }
 
 mod bench;
+mod decode;
 mod demo;
 mod eval;
 mod info;
@@ -46,6 +47,8 @@ enum Command {
     Info(info::InfoArgs),
     /// Accuracy, completeness, F-scores, DRT's figure and Hausdorff distance against a reference.
     Eval(eval::EvalArgs),
+    /// Decode a scan's captures: silhouettes and monitor points per view.
+    Decode(decode::DecodeArgs),
     /// The Gray-code images to show on the monitor, in OpenCV's order.
     Patterns(patterns::PatternsArgs),
     /// A synthetic scan of a mesh: calibration, captures and ground truth.
@@ -84,6 +87,7 @@ pub fn run() -> Result<()> {
     match cli.command {
         Command::Info(a) => info::run(&a),
         Command::Eval(a) => eval::run(&a),
+        Command::Decode(a) => decode::run(&a),
         Command::Patterns(a) => patterns::run(&a),
         Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),

@@ -40,10 +40,26 @@ impl PixelDecode {
     }
 }
 
+/// How sure a bit must be.
+#[derive(Clone, Copy, Debug)]
+pub struct BitTest {
+    /// Smallest pattern–inverse difference, grey levels (OpenCV's `whiteThreshold`).
+    pub white_threshold: u8,
+    /// Smallest pattern–inverse difference as a share of the pixel's white − black range: a
+    /// bit whose stripes split the pixel's footprint nearly evenly is not trusted. 0 gives
+    /// OpenCV's test exactly.
+    pub min_contrast: f32,
+}
+
 /// Decodes every pixel of a view from its pattern images (`code.pattern_count()` 8-bit images of
-/// one size, pixels in the same order, images in OpenCV's order); `white_threshold` as OpenCV's
-/// (grey levels).
-pub fn decode_view(images: &[&[u8]], code: &GrayCode, white_threshold: u8) -> Vec<PixelDecode> {
+/// one size, pixels in the same order, images in OpenCV's order) and its white and black images.
+pub fn decode_view(
+    images: &[&[u8]],
+    white: &[u8],
+    black: &[u8],
+    code: &GrayCode,
+    test: BitTest,
+) -> Vec<PixelDecode> {
     assert_eq!(images.len(), code.pattern_count(), "one image per pattern");
     let n = images[0].len();
     assert!(images.iter().all(|i| i.len() == n), "images of one size");
@@ -51,6 +67,8 @@ pub fn decode_view(images: &[&[u8]], code: &GrayCode, white_threshold: u8) -> Ve
     (0..n)
         .into_par_iter()
         .map(|p| {
+            let range = (white[p] as f32 - black[p] as f32).max(0.0);
+            let need = (test.white_threshold as f32).max(test.min_contrast * range);
             let axis = |first: usize, bits: usize| {
                 let mut gray = 0u32;
                 let mut kept = 0usize;
@@ -59,7 +77,7 @@ pub fn decode_view(images: &[&[u8]], code: &GrayCode, white_threshold: u8) -> Ve
                         images[first + 2 * k][p] as i32,
                         images[first + 2 * k + 1][p] as i32,
                     );
-                    if (a - b).unsigned_abs() < white_threshold as u32 {
+                    if ((a - b).abs() as f32) < need {
                         break;
                     }
                     gray = (gray << 1) | (a > b) as u32;

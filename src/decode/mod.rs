@@ -1,3 +1,298 @@
-//! Turning captures into monitor correspondences.
+//! `glasscan decode`: captures → per view the silhouette and, per object pixel, the monitor point
+//! it sees, with the uncertainty its reliable bits leave. The decoded form is documented in the
+//! README (`decoded/` of the scan folder).
 
+pub mod compare;
 pub mod graycode;
+pub mod mask;
+
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use nalgebra::Point3;
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec3b, Vec4w};
+use serde::Serialize;
+
+use crate::patterns::GrayCode;
+use crate::scan::Scan;
+use crate::util::image::write_png;
+use graycode::{decode_view, BitTest, PixelDecode};
+use mask::{clean, raw_mask, BackgroundPixel, MaskOptions};
+
+/// Thresholds of decoding.
+#[derive(Clone, Copy, Debug)]
+pub struct DecodeOptions {
+    /// A bit is reliable where pattern and inverse differ by at least this (grey levels; OpenCV's
+    /// `whiteThreshold`, default 5).
+    pub white_threshold: u8,
+    /// A pixel is lit where white − black exceeds this (OpenCV's `blackThreshold`, default 40).
+    pub black_threshold: u8,
+    /// Smallest bit contrast as a share of the pixel's white − black range (0: OpenCV's test).
+    pub min_contrast: f32,
+    pub mask: MaskOptions,
+}
+
+impl Default for DecodeOptions {
+    fn default() -> Self {
+        Self {
+            white_threshold: 5,
+            black_threshold: 40,
+            min_contrast: 0.3,
+            mask: MaskOptions::default(),
+        }
+    }
+}
+
+/// The captures of one view (or of the background), decoded.
+pub struct DecodedCapture {
+    pub width: usize,
+    pub height: usize,
+    pub pixels: Vec<PixelDecode>,
+    pub lit: Vec<bool>,
+    pub white: Vec<u8>,
+}
+
+/// Reads and decodes the captures in `dir`; names the missing or misfit image.
+pub fn decode_captures(
+    dir: &Path,
+    code: &GrayCode,
+    size: (u32, u32),
+    o: &DecodeOptions,
+) -> Result<DecodedCapture> {
+    let names = code.file_names();
+    let mut mats = Vec::with_capacity(names.len());
+    for name in &names {
+        let path = dir.join(name);
+        if !path.is_file() {
+            bail!(
+                "{}: missing capture (expected {} images named as in `glasscan patterns`)",
+                path.display(),
+                names.len()
+            );
+        }
+        let m = opencv::imgcodecs::imread(&path, opencv::imgcodecs::IMREAD_GRAYSCALE)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        if m.empty() {
+            bail!("{}: not a readable image", path.display());
+        }
+        if (m.cols() as u32, m.rows() as u32) != size {
+            bail!(
+                "{}: {}×{} pixels, but the camera (camera.yml) takes {}×{}",
+                path.display(),
+                m.cols(),
+                m.rows(),
+                size.0,
+                size.1
+            );
+        }
+        mats.push(if m.is_continuous() { m } else { m.try_clone()? });
+    }
+    let data: Vec<&[u8]> = mats
+        .iter()
+        .map(|m| m.data_typed::<u8>())
+        .collect::<Result<_, _>>()?;
+    let n = code.pattern_count();
+    let (white, black) = (data[n], data[n + 1]);
+    let test = BitTest {
+        white_threshold: o.white_threshold,
+        min_contrast: o.min_contrast,
+    };
+    let pixels = decode_view(&data[..n], white, black, code, test);
+    let lit = white
+        .iter()
+        .zip(black)
+        .map(|(&w, &b)| w as i32 - b as i32 > o.black_threshold as i32)
+        .collect();
+    Ok(DecodedCapture {
+        width: size.0 as usize,
+        height: size.1 as usize,
+        pixels,
+        lit,
+        white: white.to_vec(),
+    })
+}
+
+/// Per-view figures of a decode.
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewSummary {
+    pub view: usize,
+    pub object_pixels: usize,
+    /// Share of the object pixels with a decoded monitor point.
+    pub decoded_share: f64,
+    /// Share of those whose every bit is reliable.
+    pub complete_share: f64,
+    pub warning: Option<String>,
+}
+
+/// Decodes views `views` of `scan` into `scan/decoded/`.
+pub fn decode_scan(
+    scan: &Scan,
+    views: &[usize],
+    o: &DecodeOptions,
+    mut progress: impl FnMut(&ViewSummary),
+) -> Result<Vec<ViewSummary>> {
+    let code = scan.graycode();
+    let size = (scan.camera.width, scan.camera.height);
+    let out = scan.dir.join("decoded");
+    std::fs::create_dir_all(out.join("preview"))
+        .with_context(|| format!("cannot create {}", out.display()))?;
+    let background = background_reference(scan, &code, size, o)?;
+    let scale = crate::simulate::fixed_point_scale(code.width, code.height);
+    let mut summaries = Vec::new();
+    for &k in views {
+        let cap = decode_captures(&scan.view_dir(k), &code, size, o)?;
+        let summary = match view_problem(&cap) {
+            Some(why) => ViewSummary {
+                view: k,
+                object_pixels: 0,
+                decoded_share: 0.0,
+                complete_share: 0.0,
+                warning: Some(why),
+            },
+            None => write_view(&out, k, &cap, &background, &code, o, scale)?,
+        };
+        progress(&summary);
+        summaries.push(summary);
+    }
+    crate::util::atomic::write_atomic(&out.join("summary.json"), |w| {
+        serde_json::to_writer_pretty(
+            &mut *w,
+            &serde_json::json!({ "fixed_point_scale": scale, "views": summaries }),
+        )?;
+        Ok(())
+    })?;
+    Ok(summaries)
+}
+
+/// A view that cannot be decoded: monitor off, or saturated.
+fn view_problem(cap: &DecodedCapture) -> Option<String> {
+    let n = cap.white.len() as f64;
+    let bright = cap.white.iter().filter(|&&w| w > 30).count() as f64;
+    let lit = cap.lit.iter().filter(|&&l| l).count() as f64;
+    if bright < 0.01 * n {
+        return Some("the white image is dark: was the monitor off?".into());
+    }
+    if lit < 0.01 * n {
+        return Some(
+            "white and black images look alike (saturated or monitor off): nothing decodes".into(),
+        );
+    }
+    None
+}
+
+/// The background per pixel: decoded from `captures/background` if present, else predicted from
+/// the screen pose.
+fn background_reference(
+    scan: &Scan,
+    code: &GrayCode,
+    size: (u32, u32),
+    o: &DecodeOptions,
+) -> Result<Vec<BackgroundPixel>> {
+    let dir = scan.background_dir();
+    if dir.is_dir() {
+        let cap = decode_captures(&dir, code, size, o)?;
+        return Ok(cap
+            .pixels
+            .iter()
+            .zip(&cap.lit)
+            .zip(&cap.white)
+            .map(|((d, &lit), &w)| BackgroundPixel {
+                point: (lit && d.u.bits > 0 && d.v.bits > 0).then_some((
+                    d.u.coord,
+                    d.v.coord,
+                    d.u.cell as f32,
+                    d.v.cell as f32,
+                )),
+                white: Some(w),
+            })
+            .collect());
+    }
+    let (w, h) = size;
+    Ok((0..h * w)
+        .map(|p| {
+            let point = scan
+                .camera
+                .pixel_ray((p % w) as f64, (p / w) as f64)
+                .and_then(|d| scan.screen.intersect(&Point3::origin(), &d))
+                .map(|(_, px)| (px.x as f32, px.y as f32, 1.0, 1.0));
+            BackgroundPixel { point, white: None }
+        })
+        .collect())
+}
+
+fn write_view(
+    out: &Path,
+    k: usize,
+    cap: &DecodedCapture,
+    bg: &[BackgroundPixel],
+    code: &GrayCode,
+    o: &DecodeOptions,
+    scale: f64,
+) -> Result<ViewSummary> {
+    let (w, h) = (cap.width as i32, cap.height as i32);
+    let mut mask = raw_mask(&cap.pixels, &cap.lit, &cap.white, bg, &o.mask);
+    clean(&mut mask, w, h, &o.mask)?;
+    let fixed = |x: f32| ((x as f64 + 1.0) * scale).round().clamp(0.0, 65534.0) as u16;
+    let mut monitor = Vec::with_capacity(mask.len());
+    let mut preview = Vec::with_capacity(mask.len());
+    let (mut object, mut decoded, mut complete) = (0usize, 0usize, 0usize);
+    for ((d, (&m, &lit)), &white) in cap
+        .pixels
+        .iter()
+        .zip(mask.iter().zip(&cap.lit))
+        .zip(&cap.white)
+    {
+        let valid = lit && d.u.bits > 0 && d.v.bits > 0;
+        monitor.push(if valid {
+            Vec4w::from([
+                fixed(d.u.coord),
+                fixed(d.v.coord),
+                d.u.cell.min(65534) as u16,
+                d.v.cell.min(65534) as u16,
+            ])
+        } else {
+            Vec4w::from([u16::MAX; 4])
+        });
+        if m == 255 {
+            object += 1;
+            decoded += valid as usize;
+            complete += (valid && d.complete(code)) as usize;
+            // Object pixels: decoded coordinates as colours (blue: row, green: column), red if
+            // nothing decoded.
+            preview.push(if valid {
+                Vec3b::from([
+                    (255.0 * d.v.coord / code.height as f32) as u8,
+                    (255.0 * d.u.coord / code.width as f32) as u8,
+                    40,
+                ])
+            } else {
+                Vec3b::from([0, 0, 255])
+            });
+        } else {
+            let g = white / 2;
+            preview.push(Vec3b::from([g, g, g]));
+        }
+    }
+    write_png(
+        &out.join(format!("view_{k:03}_mask.png")),
+        &Mat::new_rows_cols_with_data(h, w, &mask)?,
+    )?;
+    write_png(
+        &out.join(format!("view_{k:03}_monitor.png")),
+        &Mat::new_rows_cols_with_data(h, w, &monitor)?,
+    )?;
+    write_png(
+        &out.join("preview").join(format!("view_{k:03}.png")),
+        &Mat::new_rows_cols_with_data(h, w, &preview)?,
+    )?;
+    let warning = (object == 0).then(|| {
+        "no object pixel found: is the object in view, and the background right?".to_string()
+    });
+    Ok(ViewSummary {
+        view: k,
+        object_pixels: object,
+        decoded_share: decoded as f64 / object.max(1) as f64,
+        complete_share: complete as f64 / decoded.max(1) as f64,
+        warning,
+    })
+}

@@ -26,6 +26,7 @@ use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Vie
 use crate::trace::path::{MeshSurface, NormalModel, PathSettings};
 use crate::trace::refract::IOR_AIR;
 use crate::util::image::write_png;
+use crate::util::median;
 use render::{shade, trace_view, Outcome, Sample, ViewSetup};
 
 /// Settings of a simulated scan (defaults: DRT's rig at 1280×960).
@@ -475,14 +476,6 @@ fn footprints(samples: &[Sample], spp: u32, keep: impl Fn(u32) -> bool) -> Vec<f
             Some(s2 / s0)
         })
         .collect()
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 /// Counts of the object pixels' outcomes over all views.

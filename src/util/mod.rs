@@ -1,4 +1,13 @@
-//! Small helpers shared by every stage: atomic file and image output.
+//! Small helpers shared by every stage: atomic file and image output, a median.
 
 pub mod atomic;
 pub mod image;
+
+/// The median of `v` (the upper one for an even count); NaN for an empty list.
+pub fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}

@@ -1,0 +1,154 @@
+//! `glasscan decode SCAN`.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::decode::compare::{compare_view, Comparison};
+use crate::decode::mask::MaskOptions;
+use crate::decode::{decode_scan, DecodeOptions};
+use crate::scan::Scan;
+
+#[derive(Args, Debug)]
+pub struct DecodeArgs {
+    /// The scan folder.
+    pub scan: PathBuf,
+    /// Views to decode: all (default), or a list of indices and ranges such as 0-9,12.
+    #[arg(long)]
+    pub views: Option<String>,
+    /// Compare with `simulate`'s ground truth (truth/ in the scan folder) and print the figures.
+    #[arg(long = "compare-ground-truth")]
+    pub compare: bool,
+    /// Smallest pattern–inverse difference of a reliable bit, grey levels (OpenCV: 5).
+    #[arg(long = "white-threshold", default_value_t = 5)]
+    pub white_threshold: u8,
+    /// Smallest white–black difference of a lit pixel, grey levels (OpenCV: 40).
+    #[arg(long = "black-threshold", default_value_t = 40)]
+    pub black_threshold: u8,
+    /// Smallest bit contrast as a share of the pixel's white − black range (0: OpenCV's test).
+    #[arg(long = "min-contrast", default_value_t = 0.3)]
+    pub min_contrast: f32,
+    /// Mask rule 1: decoded shift from the background beyond the cells, monitor pixels.
+    #[arg(long = "shift-px", default_value_t = 2.0)]
+    pub shift_px: f32,
+    /// Mask rule 3: relative drop of the white image against the background's.
+    #[arg(long = "white-drop", default_value_t = 0.15)]
+    pub white_drop: f32,
+    /// Object regions smaller than this are dropped, pixels.
+    #[arg(long = "min-component-px", default_value_t = 50)]
+    pub min_component_px: i32,
+    /// Holes smaller than this are filled, pixels.
+    #[arg(long = "max-hole-px", default_value_t = 50)]
+    pub max_hole_px: i32,
+}
+
+/// Parses "0-9,12" into view indices below `count`.
+pub fn parse_views(spec: Option<&str>, count: usize) -> Result<Vec<usize>> {
+    let Some(spec) = spec.filter(|s| *s != "all") else {
+        return Ok((0..count).collect());
+    };
+    let mut views = Vec::new();
+    for part in spec.split(',') {
+        let (a, b) = part.split_once('-').unwrap_or((part, part));
+        let (a, b): (usize, usize) = match (a.trim().parse(), b.trim().parse()) {
+            (Ok(a), Ok(b)) if a <= b => (a, b),
+            _ => bail!("--views '{spec}': '{part}' is not an index or a range like 3-7"),
+        };
+        if b >= count {
+            bail!("--views '{spec}': the scan has views 0-{}", count - 1);
+        }
+        views.extend(a..=b);
+    }
+    views.sort_unstable();
+    views.dedup();
+    Ok(views)
+}
+
+pub fn run(a: &DecodeArgs) -> Result<()> {
+    let scan = Scan::open(&a.scan)?;
+    let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
+    let o = DecodeOptions {
+        white_threshold: a.white_threshold,
+        black_threshold: a.black_threshold,
+        min_contrast: a.min_contrast,
+        mask: MaskOptions {
+            shift_px: a.shift_px,
+            white_drop: a.white_drop,
+            min_component_px: a.min_component_px,
+            max_hole_px: a.max_hole_px,
+        },
+    };
+    let bar = ProgressBar::new(views.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template("decode [{bar:40}] {pos}/{len} views ({eta})")
+            .expect("static template"),
+    );
+    let t0 = std::time::Instant::now();
+    let summaries = decode_scan(&scan, &views, &o, |s| {
+        if let Some(w) = &s.warning {
+            bar.suspend(|| eprintln!("warning: view {}: {w}", s.view));
+        }
+        bar.inc(1);
+    })?;
+    bar.finish_and_clear();
+    let object: usize = summaries.iter().map(|s| s.object_pixels).sum();
+    let decoded: f64 = summaries
+        .iter()
+        .map(|s| s.decoded_share * s.object_pixels as f64)
+        .sum();
+    outln!(
+        "decoded {} views in {:.1} s into {}: {object} object pixels, {:.1} % with a monitor point; {} view(s) with warnings",
+        summaries.len(),
+        t0.elapsed().as_secs_f64(),
+        scan.dir.join("decoded").display(),
+        100.0 * decoded / object.max(1) as f64,
+        summaries.iter().filter(|s| s.warning.is_some()).count()
+    );
+    if a.compare {
+        let scale = crate::simulate::fixed_point_scale(scan.screen.width_px, scan.screen.height_px);
+        let rows: Vec<Comparison> = summaries
+            .iter()
+            .filter(|s| s.warning.is_none())
+            .map(|s| compare_view(&scan.dir, s.view, scale))
+            .collect::<Result<_>>()?;
+        outln!(
+            "{:>5} {:>8} {:>9} {:>9} {:>12} {:>12} {:>9} {:>11}",
+            "view",
+            "mask IoU",
+            "valid",
+            "decoded %",
+            "med err foot",
+            "med err ctr",
+            "≤1 px %",
+            "≤ uncert. %"
+        );
+        for c in &rows {
+            outln!(
+                "{:>5} {:>8.4} {:>9} {:>9.1} {:>12.2} {:>12.2} {:>9.1} {:>11.1}",
+                c.view,
+                c.mask_iou,
+                c.valid,
+                100.0 * c.decoded_share,
+                c.median_error_footprint_px,
+                c.median_error_centre_px,
+                100.0 * c.within_1px_footprint,
+                100.0 * c.within_uncertainty_footprint
+            );
+        }
+        let n: usize = rows.iter().map(|c| c.compared).sum();
+        let valid: usize = rows.iter().map(|c| c.valid).sum();
+        let w = |f: fn(&Comparison) -> f64| {
+            rows.iter().map(|c| f(c) * c.compared as f64).sum::<f64>() / n.max(1) as f64
+        };
+        outln!(
+            "overall: mean mask IoU {:.4}; {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty",
+            rows.iter().map(|c| c.mask_iou).sum::<f64>() / rows.len().max(1) as f64,
+            100.0 * n as f64 / valid.max(1) as f64,
+            100.0 * w(|c| c.within_1px_footprint),
+            100.0 * w(|c| c.within_uncertainty_footprint)
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,94 @@
+//! `glasscan decode --compare-ground-truth`: a decoded view against `simulate`'s ground truth.
+
+use std::path::Path;
+
+use anyhow::{bail, Result};
+use opencv::core::{Mat, MatTraitConst, Vec3w, Vec4w};
+use serde::Serialize;
+
+use crate::util::median;
+
+/// How a decoded view compares with the truth.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Comparison {
+    pub view: usize,
+    /// Intersection over union of the decoded and the true silhouette.
+    pub mask_iou: f64,
+    /// Object pixels (in both silhouettes) whose true pixel-centre ray reaches the monitor.
+    pub valid: usize,
+    /// Share of those that were decoded (not rejected).
+    pub decoded_share: f64,
+    /// Valid object pixels compared (decoded, and true monitor points exist).
+    pub compared: usize,
+    pub median_error_footprint_px: f64,
+    pub median_error_centre_px: f64,
+    pub within_1px_footprint: f64,
+    pub within_uncertainty_footprint: f64,
+}
+
+fn load(path: &Path) -> Result<Mat> {
+    if !path.is_file() {
+        bail!(
+            "{}: missing (is this a scan made by `glasscan simulate`?)",
+            path.display()
+        );
+    }
+    Ok(opencv::imgcodecs::imread(
+        path,
+        opencv::imgcodecs::IMREAD_UNCHANGED,
+    )?)
+}
+
+/// Compares view `k` of the scan in `scan_dir` (decoded already) with its truth; `scale` is the
+/// fixed-point scale of both.
+pub fn compare_view(scan_dir: &Path, k: usize, scale: f64) -> Result<Comparison> {
+    let dec = scan_dir.join("decoded");
+    let truth = scan_dir.join("truth");
+    let (m, tm) = (
+        load(&dec.join(format!("view_{k:03}_mask.png")))?,
+        load(&truth.join(format!("view_{k:03}_mask.png")))?,
+    );
+    let mon = load(&dec.join(format!("view_{k:03}_monitor.png")))?;
+    let (centre, foot) = (
+        load(&truth.join(format!("view_{k:03}_centre.png")))?,
+        load(&truth.join(format!("view_{k:03}_footprint.png")))?,
+    );
+    let unfix = |x: u16| x as f64 / scale - 1.0;
+    let (mut inter, mut union, mut valid) = (0usize, 0usize, 0usize);
+    let (mut e_foot, mut e_centre, mut within1, mut within_u) =
+        (Vec::new(), Vec::new(), 0usize, 0usize);
+    for y in 0..m.rows() {
+        for x in 0..m.cols() {
+            let (a, b) = (*m.at_2d::<u8>(y, x)? == 255, *tm.at_2d::<u8>(y, x)? == 255);
+            inter += (a && b) as usize;
+            union += (a || b) as usize;
+            let d = *mon.at_2d::<Vec4w>(y, x)?;
+            let (f, c) = (*foot.at_2d::<Vec4w>(y, x)?, *centre.at_2d::<Vec3w>(y, x)?);
+            let truth_valid = a && b && c[0] != u16::MAX;
+            valid += truth_valid as usize;
+            if !truth_valid || d[0] == u16::MAX || f[0] == u16::MAX {
+                continue;
+            }
+            let (du, dv) = (unfix(d[0]), unfix(d[1]));
+            let (fu, fv) = (unfix(f[0]) - du, unfix(f[1]) - dv);
+            let ef = fu.hypot(fv);
+            e_foot.push(ef);
+            e_centre.push((unfix(c[0]) - du).hypot(unfix(c[1]) - dv));
+            within1 += (ef <= 1.0) as usize;
+            within_u += (fu.abs() <= d[2] as f64 / 2.0 + 0.5 && fv.abs() <= d[3] as f64 / 2.0 + 0.5)
+                as usize;
+        }
+    }
+    let n = e_foot.len();
+    Ok(Comparison {
+        view: k,
+        mask_iou: inter as f64 / union.max(1) as f64,
+        valid,
+        decoded_share: n as f64 / valid.max(1) as f64,
+        compared: n,
+        median_error_footprint_px: median(e_foot),
+        median_error_centre_px: median(e_centre),
+        within_1px_footprint: within1 as f64 / n.max(1) as f64,
+        within_uncertainty_footprint: within_u as f64 / n.max(1) as f64,
+    })
+}
