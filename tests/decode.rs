@@ -3,7 +3,8 @@
 use glasscan::decode::graycode::{decode_view, BitTest};
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::patterns::GrayCode;
-use glasscan::simulate::{fixed_point_scale, simulate, SimulateOptions};
+use glasscan::simulate::{simulate, SimulateOptions};
+use glasscan::util::fixed::FixedPoint;
 use nalgebra::Vector3;
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Point, Vec4w, Vector};
 use opencv::prelude::*;
@@ -89,7 +90,7 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
     // Through the glass, the antialiased finest stripes blur: pixels OpenCV rejects keep their
     // coarse bits, and the footprint centroid lies in the cell they select.
     let foot = load("truth/view_000_footprint.png");
-    let s = fixed_point_scale(code.width, code.height) as f32;
+    let s = FixedPoint::for_screen(code.width, code.height).scale as f32;
     let (mut inside, mut checked) = (0, 0);
     for y in 0..150 {
         for x in 0..200 {

@@ -7,7 +7,8 @@ use std::process::Command;
 use glasscan::mesh::io::write_mesh;
 use glasscan::mesh::shapes::{ellipsoid, icosphere};
 use glasscan::patterns::GrayCode;
-use glasscan::simulate::{fixed_point_scale, simulate, SimulateOptions};
+use glasscan::simulate::{simulate, SimulateOptions};
+use glasscan::util::fixed::FixedPoint;
 use nalgebra::Vector3;
 use opencv::core::{Mat, MatTraitConst, Point, Vec3w, Vector};
 use opencv::prelude::*;
@@ -82,7 +83,7 @@ fn opencv_decodes_the_simulated_captures_to_the_ground_truth() {
         images.push(m);
     }
     let truth = load("truth/view_000_centre.png");
-    let scale = fixed_point_scale(opts.screen_width, opts.screen_height);
+    let scale = FixedPoint::for_screen(opts.screen_width, opts.screen_height).scale;
     let decoder = open_pattern(opts.screen_width, opts.screen_height);
     let (mut valid, mut agree, mut refracted) = (0, 0, 0);
     for y in 0..150 {

@@ -107,11 +107,12 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         summaries.iter().filter(|s| s.warning.is_some()).count()
     );
     if a.compare {
-        let scale = crate::simulate::fixed_point_scale(scan.screen.width_px, scan.screen.height_px);
+        let fixed =
+            crate::util::fixed::FixedPoint::for_screen(scan.screen.width_px, scan.screen.height_px);
         let rows: Vec<Comparison> = summaries
             .iter()
             .filter(|s| s.warning.is_none())
-            .map(|s| compare_view(&scan.dir, s.view, scale))
+            .map(|s| compare_view(&scan.dir, s.view, &fixed))
             .collect::<Result<_>>()?;
         outln!(
             "{:>5} {:>8} {:>9} {:>9} {:>12} {:>12} {:>9} {:>11}",

@@ -6,6 +6,7 @@ use anyhow::{bail, Result};
 use opencv::core::{Mat, MatTraitConst, Vec3w, Vec4w};
 use serde::Serialize;
 
+use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::median;
 
 /// How a decoded view compares with the truth.
@@ -39,9 +40,9 @@ fn load(path: &Path) -> Result<Mat> {
     )?)
 }
 
-/// Compares view `k` of the scan in `scan_dir` (decoded already) with its truth; `scale` is the
-/// fixed-point scale of both.
-pub fn compare_view(scan_dir: &Path, k: usize, scale: f64) -> Result<Comparison> {
+/// Compares view `k` of the scan in `scan_dir` (decoded already) with its truth, both stored with
+/// `fixed`.
+pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Comparison> {
     let dec = scan_dir.join("decoded");
     let truth = scan_dir.join("truth");
     let (m, tm) = (
@@ -53,7 +54,7 @@ pub fn compare_view(scan_dir: &Path, k: usize, scale: f64) -> Result<Comparison>
         load(&truth.join(format!("view_{k:03}_centre.png")))?,
         load(&truth.join(format!("view_{k:03}_footprint.png")))?,
     );
-    let unfix = |x: u16| x as f64 / scale - 1.0;
+    let unfix = |x: u16| fixed.decode(x).unwrap_or(f64::NAN);
     let (mut inter, mut union, mut valid) = (0usize, 0usize, 0usize);
     let (mut e_foot, mut e_centre, mut within1, mut within_u) =
         (Vec::new(), Vec::new(), 0usize, 0usize);
@@ -64,9 +65,9 @@ pub fn compare_view(scan_dir: &Path, k: usize, scale: f64) -> Result<Comparison>
             union += (a || b) as usize;
             let d = *mon.at_2d::<Vec4w>(y, x)?;
             let (f, c) = (*foot.at_2d::<Vec4w>(y, x)?, *centre.at_2d::<Vec3w>(y, x)?);
-            let truth_valid = a && b && c[0] != u16::MAX;
+            let truth_valid = a && b && c[0] != NONE;
             valid += truth_valid as usize;
-            if !truth_valid || d[0] == u16::MAX || f[0] == u16::MAX {
+            if !truth_valid || d[0] == NONE || f[0] == NONE {
                 continue;
             }
             let (du, dv) = (unfix(d[0]), unfix(d[1]));

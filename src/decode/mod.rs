@@ -10,12 +10,13 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use nalgebra::Point3;
-use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec3b, Vec4w};
+use opencv::core::{MatTraitConst, MatTraitConstManual, Vec3b, Vec4w};
 use serde::Serialize;
 
 use crate::patterns::GrayCode;
 use crate::scan::Scan;
-use crate::util::image::write_png;
+use crate::util::fixed::{FixedPoint, NONE};
+use crate::util::image::write_pixels;
 use graycode::{decode_view, BitTest, PixelDecode};
 use mask::{clean, raw_mask, BackgroundPixel, MaskOptions};
 
@@ -137,7 +138,7 @@ pub fn decode_scan(
     std::fs::create_dir_all(out.join("preview"))
         .with_context(|| format!("cannot create {}", out.display()))?;
     let background = background_reference(scan, &code, size, o)?;
-    let scale = crate::simulate::fixed_point_scale(code.width, code.height);
+    let fixed = FixedPoint::for_screen(code.width, code.height);
     let mut summaries = Vec::new();
     for &k in views {
         let cap = decode_captures(&scan.view_dir(k), &code, size, o)?;
@@ -149,7 +150,7 @@ pub fn decode_scan(
                 complete_share: 0.0,
                 warning: Some(why),
             },
-            None => write_view(&out, k, &cap, &background, &code, o, scale)?,
+            None => write_view(&out, k, &cap, &background, &code, o, &fixed)?,
         };
         progress(&summary);
         summaries.push(summary);
@@ -157,7 +158,7 @@ pub fn decode_scan(
     crate::util::atomic::write_atomic(&out.join("summary.json"), |w| {
         serde_json::to_writer_pretty(
             &mut *w,
-            &serde_json::json!({ "fixed_point_scale": scale, "views": summaries }),
+            &serde_json::json!({ "fixed_point_scale": fixed.scale, "views": summaries }),
         )?;
         Ok(())
     })?;
@@ -227,12 +228,11 @@ fn write_view(
     bg: &[BackgroundPixel],
     code: &GrayCode,
     o: &DecodeOptions,
-    scale: f64,
+    fixed: &FixedPoint,
 ) -> Result<ViewSummary> {
     let (w, h) = (cap.width as i32, cap.height as i32);
     let mut mask = raw_mask(&cap.pixels, &cap.lit, &cap.white, bg, &o.mask);
     clean(&mut mask, w, h, &o.mask)?;
-    let fixed = |x: f32| ((x as f64 + 1.0) * scale).round().clamp(0.0, 65534.0) as u16;
     let mut monitor = Vec::with_capacity(mask.len());
     let mut preview = Vec::with_capacity(mask.len());
     let (mut object, mut decoded, mut complete) = (0usize, 0usize, 0usize);
@@ -245,13 +245,13 @@ fn write_view(
         let valid = lit && d.u.bits > 0 && d.v.bits > 0;
         monitor.push(if valid {
             Vec4w::from([
-                fixed(d.u.coord),
-                fixed(d.v.coord),
+                fixed.encode(d.u.coord as f64),
+                fixed.encode(d.v.coord as f64),
                 d.u.cell.min(65534) as u16,
                 d.v.cell.min(65534) as u16,
             ])
         } else {
-            Vec4w::from([u16::MAX; 4])
+            Vec4w::from([NONE; 4])
         });
         if m == 255 {
             object += 1;
@@ -273,17 +273,23 @@ fn write_view(
             preview.push(Vec3b::from([g, g, g]));
         }
     }
-    write_png(
+    write_pixels(
         &out.join(format!("view_{k:03}_mask.png")),
-        &Mat::new_rows_cols_with_data(h, w, &mask)?,
+        cap.width as u32,
+        cap.height as u32,
+        &mask,
     )?;
-    write_png(
+    write_pixels(
         &out.join(format!("view_{k:03}_monitor.png")),
-        &Mat::new_rows_cols_with_data(h, w, &monitor)?,
+        cap.width as u32,
+        cap.height as u32,
+        &monitor,
     )?;
-    write_png(
+    write_pixels(
         &out.join("preview").join(format!("view_{k:03}.png")),
-        &Mat::new_rows_cols_with_data(h, w, &preview)?,
+        cap.width as u32,
+        cap.height as u32,
+        &preview,
     )?;
     let warning = (object == 0).then(|| {
         "no object pixel found: is the object in view, and the background right?".to_string()

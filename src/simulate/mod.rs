@@ -25,7 +25,8 @@ use crate::rig::{Camera, Screen, Turntable};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::trace::path::{MeshSurface, NormalModel, PathSettings};
 use crate::trace::refract::IOR_AIR;
-use crate::util::image::write_png;
+use crate::util::fixed::{FixedPoint, NONE};
+use crate::util::image::{write_pixels, write_png};
 use crate::util::median;
 use render::{shade, trace_view, Outcome, Sample, ViewSetup};
 
@@ -209,7 +210,7 @@ pub fn simulate(
         max_refractions: o.max_refractions,
     };
     let mut tally = Tally::default();
-    let report_scale = fixed_point_scale(o.screen_width, o.screen_height);
+    let fixed = FixedPoint::for_screen(o.screen_width, o.screen_height);
     let poses = scan.view_poses();
     let setup = |pose: Isometry3<f64>, surface| ViewSetup {
         camera: &scan.camera,
@@ -240,7 +241,7 @@ pub fn simulate(
     for (k, pose) in poses.iter().enumerate() {
         let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
         tally.add(&samples, o.spp);
-        write_truth(&truth, k, &samples, &scan.camera, o.spp, report_scale)?;
+        write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
         if !o.decoded_only {
             write_captures(
                 &scan.view_dir(k),
@@ -254,7 +255,7 @@ pub fn simulate(
     }
     let mut report = tally.report(o.views);
     report.direct_footprint_px = direct_footprint_px;
-    report.fixed_point_scale = report_scale;
+    report.fixed_point_scale = fixed.scale;
     report.seconds = t0.elapsed().as_secs_f64();
     crate::util::atomic::write_atomic(&truth.join("summary.json"), |w| {
         serde_json::to_writer_pretty(&mut *w, &report)?;
@@ -357,16 +358,8 @@ fn write_truth(
     samples: &[Sample],
     cam: &Camera,
     spp: u32,
-    scale: f64,
+    fixed: &FixedPoint,
 ) -> Result<()> {
-    let (w, h) = (cam.width as i32, cam.height as i32);
-    let fixed = |x: f64| {
-        if x.is_finite() {
-            ((x + 1.0) * scale).round().clamp(0.0, 65534.0) as u16
-        } else {
-            u16::MAX
-        }
-    };
     let n_px = samples.len() / spp as usize;
     let (mut centre, mut foot, mut mask) = (
         Vec::with_capacity(n_px),
@@ -380,8 +373,8 @@ fn write_truth(
             _ => (f64::NAN, f64::NAN),
         };
         centre.push(Vec3w::from([
-            fixed(u),
-            fixed(v),
+            fixed.encode(u),
+            fixed.encode(v),
             (c.outcome.code() + 16.0) as u16,
         ]));
         mask.push(if c.outcome.hit_object() { 255u8 } else { 0 });
@@ -405,35 +398,36 @@ fn write_truth(
             (mu, mv, s2.sqrt())
         };
         let spread_fixed = if spread.is_finite() {
-            (spread * scale).round().min(65534.0) as u16
+            (spread * fixed.scale).round().min(65534.0) as u16
         } else {
-            u16::MAX
+            NONE
         };
         foot.push(Vec4w::from([
-            fixed(mu),
-            fixed(mv),
+            fixed.encode(mu),
+            fixed.encode(mv),
             spread_fixed,
             (65535.0 * n / spp as f64).round() as u16,
         ]));
     }
-    write_png(
+    write_pixels(
         &dir.join(format!("view_{k:03}_centre.png")),
-        &Mat::new_rows_cols_with_data(h, w, &centre)?,
+        cam.width,
+        cam.height,
+        &centre,
     )?;
-    write_png(
+    write_pixels(
         &dir.join(format!("view_{k:03}_footprint.png")),
-        &Mat::new_rows_cols_with_data(h, w, &foot)?,
+        cam.width,
+        cam.height,
+        &foot,
     )?;
-    write_png(
+    write_pixels(
         &dir.join(format!("view_{k:03}_mask.png")),
-        &Mat::new_rows_cols_with_data(h, w, &mask)?,
+        cam.width,
+        cam.height,
+        &mask,
     )?;
     Ok(())
-}
-
-/// The fixed-point scale of the truth PNGs: as fine as 16 bits allow for the monitor's size.
-pub fn fixed_point_scale(screen_width: u32, screen_height: u32) -> f64 {
-    (65534.0 / (screen_width.max(screen_height) as f64 + 1.0)).floor()
 }
 
 /// Footprint areas (monitor pixels) of the pixels all of whose area samples reached the monitor

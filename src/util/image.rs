@@ -18,3 +18,14 @@ pub fn write_png(path: &Path, img: &impl opencv::core::ToInputArray) -> Result<(
     std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
 }
+
+/// Writes `data` (row-major pixels of `width` × `height`, any OpenCV pixel type) as a PNG.
+pub fn write_pixels<T: opencv::core::DataType>(
+    path: &Path,
+    width: u32,
+    height: u32,
+    data: &[T],
+) -> Result<()> {
+    let mat = opencv::core::Mat::new_rows_cols_with_data(height as i32, width as i32, data)?;
+    write_png(path, &mat)
+}

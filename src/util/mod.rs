@@ -1,6 +1,7 @@
 //! Small helpers shared by every stage: atomic file and image output, a median.
 
 pub mod atomic;
+pub mod fixed;
 pub mod image;
 
 /// The median of `v` (the upper one for an even count); NaN for an empty list.
