@@ -137,3 +137,71 @@ impl GrayCode {
 fn bits_for(n: u32) -> u32 {
     (n as f64).log2().ceil() as u32
 }
+
+/// Sinusoidal phase-shift patterns, shown after the Gray code for sub-pixel accuracy: for each
+/// axis, `steps` images `0.5 + 0.5·cos(2π·x/period − 2π·k/steps)` (x the monitor column, then
+/// row). The Gray code's reliable bits pick the period; the phase gives the position inside it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhaseShift {
+    /// Images per axis (≥ 3).
+    pub steps: u32,
+    /// Period of the sinusoid, monitor pixels (≥ 4).
+    pub period_px: u32,
+}
+
+impl PhaseShift {
+    /// File names: `phase_u_00.png` … then `phase_v_00.png` …
+    pub fn file_names(&self) -> Vec<String> {
+        ["u", "v"]
+            .iter()
+            .flat_map(|a| (0..self.steps).map(move |k| format!("phase_{a}_{k:02}.png")))
+            .collect()
+    }
+
+    /// Brightness (0..1) of image `k` of an axis at monitor coordinate `x` (pixels).
+    pub fn value(&self, x: f64, k: u32) -> f64 {
+        let t = std::f64::consts::TAU;
+        0.5 + 0.5 * (t * x / self.period_px as f64 - t * k as f64 / self.steps as f64).cos()
+    }
+
+    /// From the `steps` intensities of one axis: the coordinate modulo the period (monitor
+    /// pixels) and the modulation B/A (1 for full contrast, 0 for none).
+    pub fn wrapped(&self, intensities: impl Iterator<Item = f64>) -> (f64, f64) {
+        let t = std::f64::consts::TAU;
+        let (mut s, mut c, mut sum) = (0.0, 0.0, 0.0);
+        for (k, i) in intensities.enumerate() {
+            let d = t * k as f64 / self.steps as f64;
+            s += i * d.sin();
+            c += i * d.cos();
+            sum += i;
+        }
+        let n = self.steps as f64;
+        let (a, b) = (sum / n, 2.0 / n * s.hypot(c));
+        let phase = s.atan2(c).rem_euclid(t);
+        (
+            phase / t * self.period_px as f64,
+            if a > 0.0 { b / a } else { 0.0 },
+        )
+    }
+
+    /// Writes the images for a `width` × `height` monitor into `dir`.
+    pub fn write_images(
+        &self,
+        dir: &std::path::Path,
+        width: u32,
+        height: u32,
+    ) -> anyhow::Result<()> {
+        for (i, name) in self.file_names().iter().enumerate() {
+            let (k, along_u) = ((i as u32) % self.steps, (i as u32) < self.steps);
+            let img: Vec<u8> = (0..height)
+                .flat_map(|y| (0..width).map(move |x| (x, y)))
+                .map(|(x, y)| {
+                    (255.0 * self.value(if along_u { x } else { y } as f64, k)).round() as u8
+                })
+                .collect();
+            crate::util::image::write_pixels(&dir.join(name), width, height, &img)?;
+        }
+        Ok(())
+    }
+}

@@ -20,6 +20,7 @@
 //! kind = "graycode"             # OpenCV's GrayCodePattern order
 //! width = 1920                  # monitor pixels the patterns span (= the screen's)
 //! height = 1080
+//! # phase_shift = { steps = 8, period_px = 64 }   # optional sinusoidal patterns
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -27,7 +28,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
-use crate::patterns::GrayCode;
+use crate::patterns::{GrayCode, PhaseShift};
 use crate::rig::{calib_io, Camera, Screen, Turntable};
 use crate::util::atomic::write_atomic;
 
@@ -61,6 +62,9 @@ pub struct Patterns {
     pub kind: PatternKind,
     pub width: u32,
     pub height: u32,
+    /// Optional phase-shift images after the Gray code.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub phase_shift: Option<PhaseShift>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -142,6 +146,14 @@ impl Scan {
                 screen.width_px,
                 screen.height_px
             )));
+        }
+        if let Some(p) = config.patterns.phase_shift {
+            if p.steps < 3 || p.period_px < 4 {
+                return Err(bad(format!(
+                    "phase_shift needs steps ≥ 3 and period_px ≥ 4, got {} and {}",
+                    p.steps, p.period_px
+                )));
+            }
         }
         let turntable = Turntable {
             axis_point,

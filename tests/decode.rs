@@ -219,3 +219,66 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
     let o = glasscan(&["decode", s, "--views", "5"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("views 0-1"));
 }
+
+#[test]
+fn phase_shift_sharpens_the_gray_code() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    let opts = SimulateOptions {
+        views: 1,
+        width: 200,
+        height: 150,
+        screen_width: 640,
+        screen_height: 400,
+        pitch_mm: 0.6,
+        spp: 16,
+        phase_shift: Some(glasscan::patterns::PhaseShift {
+            steps: 8,
+            period_px: 32,
+        }),
+        ..Default::default()
+    };
+    simulate(
+        &ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4),
+        &scan,
+        &opts,
+        |_| (),
+    )
+    .unwrap();
+    assert!(scan.join("captures/view_000/phase_v_07.png").is_file());
+    let s = scan.to_str().unwrap();
+    let median = |extra: &[&str]| -> f64 {
+        let mut args = vec!["decode", s, "--compare-ground-truth"];
+        args.extend(extra);
+        let o = glasscan(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let out = String::from_utf8_lossy(&o.stdout).into_owned();
+        let last = out.lines().last().unwrap().to_string();
+        last.rsplit("footprint centroid ")
+            .next()
+            .unwrap()
+            .trim_end_matches(" px")
+            .parse()
+            .unwrap()
+    };
+    let (gray, phase) = (median(&["--no-phase"]), median(&[]));
+    assert!(
+        phase * 3.0 <= gray,
+        "median error: {phase} px with phase shift, {gray} px with Gray code alone"
+    );
+
+    let out = dir.path().join("patterns");
+    let o = glasscan(&[
+        "patterns",
+        "--screen",
+        "64x32",
+        "--out",
+        out.to_str().unwrap(),
+        "--phase-shift",
+        "4",
+        "--period-px",
+        "16",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.join("phase_u_03.png").is_file() && out.join("phase_v_03.png").is_file());
+}

@@ -30,6 +30,12 @@ pub struct DecodeArgs {
     /// Smallest bit contrast as a share of the pixel's white − black range (0: OpenCV's test).
     #[arg(long = "min-contrast", default_value_t = 0.3)]
     pub min_contrast: f32,
+    /// Ignore the scan's phase-shift images (Gray code alone).
+    #[arg(long = "no-phase")]
+    pub no_phase: bool,
+    /// Smallest phase modulation (B/A) for a phase-refined point.
+    #[arg(long = "min-modulation", default_value_t = 0.3)]
+    pub min_modulation: f64,
     /// Mask rule 1: decoded shift from the background beyond the cells, monitor pixels.
     #[arg(long = "shift-px", default_value_t = 2.0)]
     pub shift_px: f32,
@@ -73,6 +79,8 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         white_threshold: a.white_threshold,
         black_threshold: a.black_threshold,
         min_contrast: a.min_contrast,
+        use_phase: !a.no_phase,
+        min_modulation: a.min_modulation,
         mask: MaskOptions {
             shift_px: a.shift_px,
             white_drop: a.white_drop,
@@ -144,11 +152,12 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
             rows.iter().map(|c| f(c) * c.compared as f64).sum::<f64>() / n.max(1) as f64
         };
         outln!(
-            "overall: mean mask IoU {:.4}; {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty",
+            "overall: mean mask IoU {:.4}; {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
             rows.iter().map(|c| c.mask_iou).sum::<f64>() / rows.len().max(1) as f64,
             100.0 * n as f64 / valid.max(1) as f64,
             100.0 * w(|c| c.within_1px_footprint),
-            100.0 * w(|c| c.within_uncertainty_footprint)
+            100.0 * w(|c| c.within_uncertainty_footprint),
+            crate::util::median(rows.iter().map(|c| c.median_error_footprint_px).collect())
         );
     }
     Ok(())

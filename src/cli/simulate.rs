@@ -7,6 +7,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::mesh::io::read_mesh;
+use crate::patterns::PhaseShift;
 use crate::simulate::{simulate, SimulateOptions};
 use crate::trace::path::NormalModel;
 
@@ -67,6 +68,12 @@ pub struct SimulateArgs {
     /// No Fresnel transmission losses.
     #[arg(long = "no-fresnel")]
     pub no_fresnel: bool,
+    /// Also render N-step phase-shift images after the Gray code.
+    #[arg(long = "phase-shift")]
+    pub phase_steps: Option<u32>,
+    /// Period of the phase-shift sinusoid, monitor pixels.
+    #[arg(long = "period-px", default_value_t = 64, requires = "phase_steps")]
+    pub period_px: u32,
 }
 
 /// Parses WIDTHxHEIGHT (both at least 1).
@@ -115,6 +122,10 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
         fill: a.fill,
         normals: a.normals,
         fresnel: !a.no_fresnel,
+        phase_shift: a.phase_steps.map(|steps| PhaseShift {
+            steps,
+            period_px: a.period_px,
+        }),
     };
     let bar = ProgressBar::new(a.views as u64);
     bar.set_style(

@@ -5,6 +5,7 @@
 pub mod compare;
 pub mod graycode;
 pub mod mask;
+pub mod phase;
 
 use std::path::Path;
 
@@ -13,7 +14,7 @@ use nalgebra::Point3;
 use opencv::core::{MatTraitConst, MatTraitConstManual, Vec3b, Vec4w};
 use serde::Serialize;
 
-use crate::patterns::GrayCode;
+use crate::patterns::{GrayCode, PhaseShift};
 use crate::scan::Scan;
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::image::write_pixels;
@@ -30,6 +31,10 @@ pub struct DecodeOptions {
     pub black_threshold: u8,
     /// Smallest bit contrast as a share of the pixel's white − black range (0: OpenCV's test).
     pub min_contrast: f32,
+    /// Refine with the phase-shift images, where the scan has them.
+    pub use_phase: bool,
+    /// Smallest phase modulation (B/A) a refined pixel needs.
+    pub min_modulation: f64,
     pub mask: MaskOptions,
 }
 
@@ -39,6 +44,8 @@ impl Default for DecodeOptions {
             white_threshold: 5,
             black_threshold: 40,
             min_contrast: 0.3,
+            use_phase: true,
+            min_modulation: 0.3,
             mask: MaskOptions::default(),
         }
     }
@@ -53,14 +60,19 @@ pub struct DecodedCapture {
     pub white: Vec<u8>,
 }
 
-/// Reads and decodes the captures in `dir`; names the missing or misfit image.
+/// Reads and decodes the captures in `dir` (with the phase-shift images if `phase` is given);
+/// names the missing or misfit image.
 pub fn decode_captures(
     dir: &Path,
     code: &GrayCode,
+    phase: Option<&PhaseShift>,
     size: (u32, u32),
     o: &DecodeOptions,
 ) -> Result<DecodedCapture> {
-    let names = code.file_names();
+    let mut names = code.file_names();
+    if let Some(p) = phase {
+        names.extend(p.file_names());
+    }
     let mut mats = Vec::with_capacity(names.len());
     for name in &names {
         let path = dir.join(name);
@@ -98,7 +110,10 @@ pub fn decode_captures(
         white_threshold: o.white_threshold,
         min_contrast: o.min_contrast,
     };
-    let pixels = decode_view(&data[..n], white, black, code, test);
+    let mut pixels = decode_view(&data[..n], white, black, code, test);
+    if let Some(p) = phase {
+        phase::refine(&mut pixels, &data[n + 2..], p, o.min_modulation);
+    }
     let lit = white
         .iter()
         .zip(black)
@@ -133,15 +148,17 @@ pub fn decode_scan(
     mut progress: impl FnMut(&ViewSummary),
 ) -> Result<Vec<ViewSummary>> {
     let code = scan.graycode();
+    let phase_shift = scan.config.patterns.phase_shift.filter(|_| o.use_phase);
+    let phase = phase_shift.as_ref();
     let size = (scan.camera.width, scan.camera.height);
     let out = scan.dir.join("decoded");
     std::fs::create_dir_all(out.join("preview"))
         .with_context(|| format!("cannot create {}", out.display()))?;
-    let background = background_reference(scan, &code, size, o)?;
+    let background = background_reference(scan, &code, phase, size, o)?;
     let fixed = FixedPoint::for_screen(code.width, code.height);
     let mut summaries = Vec::new();
     for &k in views {
-        let cap = decode_captures(&scan.view_dir(k), &code, size, o)?;
+        let cap = decode_captures(&scan.view_dir(k), &code, phase, size, o)?;
         let summary = match view_problem(&cap) {
             Some(why) => ViewSummary {
                 view: k,
@@ -186,12 +203,13 @@ fn view_problem(cap: &DecodedCapture) -> Option<String> {
 fn background_reference(
     scan: &Scan,
     code: &GrayCode,
+    phase: Option<&PhaseShift>,
     size: (u32, u32),
     o: &DecodeOptions,
 ) -> Result<Vec<BackgroundPixel>> {
     let dir = scan.background_dir();
     if dir.is_dir() {
-        let cap = decode_captures(&dir, code, size, o)?;
+        let cap = decode_captures(&dir, code, phase, size, o)?;
         return Ok(cap
             .pixels
             .iter()

@@ -20,7 +20,7 @@ use serde::Serialize;
 use crate::mesh::io::write_mesh;
 use crate::mesh::validate::ensure_valid;
 use crate::mesh::TriMesh;
-use crate::patterns::GrayCode;
+use crate::patterns::{GrayCode, PhaseShift};
 use crate::rig::{Camera, Screen, Turntable};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::trace::path::{MeshSurface, NormalModel, PathSettings};
@@ -28,7 +28,7 @@ use crate::trace::refract::IOR_AIR;
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::image::{write_pixels, write_png};
 use crate::util::median;
-use render::{shade, trace_view, Outcome, Sample, ViewSetup};
+use render::{shade, shade_phase, trace_view, Outcome, Sample, ViewSetup};
 
 /// Settings of a simulated scan (defaults: DRT's rig at 1280×960).
 #[derive(Clone, Debug)]
@@ -60,6 +60,8 @@ pub struct SimulateOptions {
     pub normals: NormalModel,
     /// Fresnel transmission losses.
     pub fresnel: bool,
+    /// Phase-shift images after the Gray code.
+    pub phase_shift: Option<PhaseShift>,
 }
 
 impl Default for SimulateOptions {
@@ -83,6 +85,7 @@ impl Default for SimulateOptions {
             fill: 0.6,
             normals: NormalModel::Vertex,
             fresnel: true,
+            phase_shift: None,
         }
     }
 }
@@ -190,6 +193,7 @@ pub fn simulate(
                 kind: PatternKind::Graycode,
                 width: o.screen_width,
                 height: o.screen_height,
+                phase_shift: o.phase_shift,
             },
         },
         camera,
@@ -291,6 +295,11 @@ fn check_options(o: &SimulateOptions) -> Result<()> {
     if !(o.fill > 0.0 && o.fill <= 1.0) {
         bail!("--fill {}: it must lie in (0, 1]", o.fill);
     }
+    if let Some(p) = o.phase_shift {
+        if p.steps < 3 || p.period_px < 4 {
+            bail!("phase shift needs at least 3 steps and a period of at least 4 pixels");
+        }
+    }
     if o.views == 0 || o.spp == 0 || o.max_refractions == 0 {
         bail!("views, spp and max refractions must be at least 1");
     }
@@ -309,12 +318,19 @@ fn write_captures(
     seed: u64,
 ) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let names = code.file_names();
+    let mut names = code.file_names();
+    let gray = names.len();
+    if let Some(p) = &o.phase_shift {
+        names.extend(p.file_names());
+    }
     names
         .par_iter()
         .enumerate()
         .try_for_each(|(i, name)| -> Result<()> {
-            let mut img = shade(samples, o.spp, code, i);
+            let mut img = match (&o.phase_shift, i.checked_sub(gray)) {
+                (Some(p), Some(j)) => shade_phase(samples, o.spp, p, j as u32),
+                _ => shade(samples, o.spp, code, i),
+            };
             if o.noise > 0.0 {
                 let mut rng =
                     ChaCha8Rng::seed_from_u64(seed.wrapping_mul(1000).wrapping_add(i as u64));

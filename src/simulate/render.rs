@@ -4,7 +4,7 @@
 use nalgebra::{Isometry3, Point2, Point3, Vector3};
 use rayon::prelude::*;
 
-use crate::patterns::GrayCode;
+use crate::patterns::{GrayCode, PhaseShift};
 use crate::rig::{Camera, Screen};
 use crate::trace::path::{trace_paths, MeshSurface, PathEnd, PathSettings};
 use crate::trace::{Ray, TraceError};
@@ -191,6 +191,26 @@ pub fn shade(samples: &[Sample], spp: u32, code: &GrayCode, i: usize) -> Vec<f32
                     }
                 })
                 .map(|s| s.weight)
+                .sum();
+            (255.0 * lit / spp as f64) as f32
+        })
+        .collect()
+}
+
+/// Shades phase-shift image `j` (the first `steps` along u, then along v) as 0..255 intensities,
+/// from the samples of a view.
+pub fn shade_phase(samples: &[Sample], spp: u32, phase: &PhaseShift, j: u32) -> Vec<f32> {
+    let (k, along_u) = (j % phase.steps, j < phase.steps);
+    samples
+        .par_chunks(spp as usize)
+        .map(|px| {
+            let lit: f64 = px
+                .iter()
+                .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
+                .map(|s| {
+                    let x = if along_u { s.monitor.x } else { s.monitor.y };
+                    s.weight * phase.value(x.round(), k)
+                })
                 .sum();
             (255.0 * lit / spp as f64) as f32
         })
