@@ -179,6 +179,35 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
         assert!(scan.join(f).is_file(), "{f}");
     }
 
+    // Without the background captures, the calibrated screen pose predicts the background.
+    std::fs::rename(
+        scan.join("captures/background"),
+        dir.path().join("background"),
+    )
+    .unwrap();
+    let o = glasscan(&["decode", s, "--compare-ground-truth"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    let overall = out.lines().last().unwrap();
+    let iou: f64 = overall["overall: mean mask IoU ".len()..]
+        .split(';')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(iou >= 0.99, "{overall}");
+
+    // A saturated view (black as bright as white) is reported by name.
+    let view0 = scan.join("captures/view_000");
+    std::fs::copy(view0.join("black.png"), dir.path().join("black0.png")).unwrap();
+    std::fs::copy(view0.join("white.png"), view0.join("black.png")).unwrap();
+    let o = glasscan(&["decode", s, "--views", "0"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.success() && err.contains("view 0") && err.contains("saturated"),
+        "{err}"
+    );
+    std::fs::copy(dir.path().join("black0.png"), view0.join("black.png")).unwrap();
+
     // A dark view is reported by name and gets no mask.
     let black = scan.join("captures/view_001/black.png");
     std::fs::copy(&black, scan.join("captures/view_001/white.png")).unwrap();
