@@ -173,46 +173,43 @@ fn land(
     }
 }
 
-/// Shades image `i` of the capture sequence (patterns, then white, then black) as 0..255
-/// intensities (before noise), from the samples of a view.
-pub fn shade(samples: &[Sample], spp: u32, code: &GrayCode, i: usize) -> Vec<f32> {
-    let n = code.pattern_count();
+/// Shades one image as 0..255 intensities (before noise): each pixel averages, over its area
+/// samples that reached the monitor, the sample's weight times the monitor's brightness (0..1)
+/// there, given by `brightness(u, v)` at the sample's monitor pixel.
+fn shade_with(
+    samples: &[Sample],
+    spp: u32,
+    brightness: impl Fn(f64, f64) -> f64 + Sync,
+) -> Vec<f32> {
     samples
         .par_chunks(spp as usize)
         .map(|px| {
             let lit: f64 = px
                 .iter()
                 .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
-                .filter(|s| {
-                    let (u, v) = (s.monitor.x.round() as u32, s.monitor.y.round() as u32);
-                    match i {
-                        i if i < n => code.is_white(i, u, v),
-                        i => i == n, // white image; the black image shows nothing
-                    }
-                })
-                .map(|s| s.weight)
+                .map(|s| s.weight * brightness(s.monitor.x.round(), s.monitor.y.round()))
                 .sum();
             (255.0 * lit / spp as f64) as f32
         })
         .collect()
 }
 
-/// Shades phase-shift image `j` (the first `steps` along u, then along v) as 0..255 intensities,
-/// from the samples of a view.
+/// Shades image `i` of the capture sequence (patterns, then white, then black).
+pub fn shade(samples: &[Sample], spp: u32, code: &GrayCode, i: usize) -> Vec<f32> {
+    let n = code.pattern_count();
+    shade_with(samples, spp, |u, v| {
+        let on = match i {
+            i if i < n => code.is_white(i, u as u32, v as u32),
+            i => i == n, // white image; the black image shows nothing
+        };
+        on as u8 as f64
+    })
+}
+
+/// Shades phase-shift image `j` (the first `steps` along u, then along v).
 pub fn shade_phase(samples: &[Sample], spp: u32, phase: &PhaseShift, j: u32) -> Vec<f32> {
     let (k, along_u) = (j % phase.steps, j < phase.steps);
-    samples
-        .par_chunks(spp as usize)
-        .map(|px| {
-            let lit: f64 = px
-                .iter()
-                .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
-                .map(|s| {
-                    let x = if along_u { s.monitor.x } else { s.monitor.y };
-                    s.weight * phase.value(x.round(), k)
-                })
-                .sum();
-            (255.0 * lit / spp as f64) as f32
-        })
-        .collect()
+    shade_with(samples, spp, |u, v| {
+        phase.value(if along_u { u } else { v }, k)
+    })
 }
