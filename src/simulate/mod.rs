@@ -394,25 +394,15 @@ fn write_truth(
             (c.outcome.code() + 16.0) as u16,
         ]));
         mask.push(if c.outcome.hit_object() { 255u8 } else { 0 });
-        let on: Vec<&Sample> = px
+        let on = px
             .iter()
-            .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
-            .collect();
-        let n = on.len() as f64;
-        let (mu, mv, spread) = if on.is_empty() {
-            (f64::NAN, f64::NAN, f64::NAN)
-        } else {
-            let (mu, mv) = (
-                on.iter().map(|s| s.monitor.x).sum::<f64>() / n,
-                on.iter().map(|s| s.monitor.y).sum::<f64>() / n,
-            );
-            let s2 = on
-                .iter()
-                .map(|s| (s.monitor.x - mu).powi(2) + (s.monitor.y - mv).powi(2))
-                .sum::<f64>()
-                / n;
-            (mu, mv, s2.sqrt())
-        };
+            .filter(|s| matches!(s.outcome, Outcome::Monitor(_)));
+        let n = on.clone().count() as f64;
+        let (mu, mv, spread) = centroid_spread(on.map(|s| (s.monitor.x, s.monitor.y))).unwrap_or((
+            f64::NAN,
+            f64::NAN,
+            f64::NAN,
+        ));
         let spread_fixed = if spread.is_finite() {
             (spread * fixed.scale).round().min(65534.0) as u16
         } else {
@@ -446,6 +436,22 @@ fn write_truth(
     Ok(())
 }
 
+/// Centroid and RMS distance from it of a set of points; `None` for no points.
+fn centroid_spread(points: impl Iterator<Item = (f64, f64)> + Clone) -> Option<(f64, f64, f64)> {
+    let n = points.clone().count() as f64;
+    if n == 0.0 {
+        return None;
+    }
+    let (mu, mv) = points
+        .clone()
+        .fold((0.0, 0.0), |(a, b), (x, y)| (a + x / n, b + y / n));
+    let s2 = points
+        .map(|(x, y)| (x - mu).powi(2) + (y - mv).powi(2))
+        .sum::<f64>()
+        / n;
+    Some((mu, mv, s2.sqrt()))
+}
+
 /// Footprint areas (monitor pixels) of the pixels all of whose area samples reached the monitor
 /// through the same number of refractions `k` with `keep(k)`: the samples' spread on the monitor
 /// relative to their spread in the camera pixel, squared (exact for a locally linear map with
@@ -454,17 +460,8 @@ fn footprints(samples: &[Sample], spp: u32, keep: impl Fn(u32) -> bool) -> Vec<f
     if spp < 2 {
         return Vec::new();
     }
-    let offsets = render::sample_offsets(spp);
-    let n = spp as f64;
-    let (ox, oy) = (
-        offsets.iter().map(|o| o.0).sum::<f64>() / n,
-        offsets.iter().map(|o| o.1).sum::<f64>() / n,
-    );
-    let s0 = offsets
-        .iter()
-        .map(|o| (o.0 - ox).powi(2) + (o.1 - oy).powi(2))
-        .sum::<f64>()
-        / n;
+    let (_, _, s0) = centroid_spread(render::sample_offsets(spp).into_iter()).expect("spp ≥ 2");
+    let s0 = s0 * s0;
     samples
         .chunks(spp as usize)
         .filter_map(|px| {
@@ -474,16 +471,8 @@ fn footprints(samples: &[Sample], spp: u32, keep: impl Fn(u32) -> bool) -> Vec<f
             if !keep(k) || px.iter().any(|s| s.outcome != px[0].outcome) {
                 return None;
             }
-            let (mu, mv) = (
-                px.iter().map(|s| s.monitor.x).sum::<f64>() / n,
-                px.iter().map(|s| s.monitor.y).sum::<f64>() / n,
-            );
-            let s2 = px
-                .iter()
-                .map(|s| (s.monitor.x - mu).powi(2) + (s.monitor.y - mv).powi(2))
-                .sum::<f64>()
-                / n;
-            Some(s2 / s0)
+            let (_, _, spread) = centroid_spread(px.iter().map(|s| (s.monitor.x, s.monitor.y)))?;
+            Some(spread * spread / s0)
         })
         .collect()
 }
