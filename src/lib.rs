@@ -8,6 +8,7 @@ pub mod bench;
 pub mod cli;
 pub mod decode;
 pub mod eval;
+pub mod hull;
 pub mod mesh;
 pub mod patterns;
 pub mod rig;

@@ -22,6 +22,7 @@ mod bench;
 mod decode;
 mod demo;
 mod eval;
+mod hull;
 mod info;
 mod patterns;
 mod remesh;
@@ -55,6 +56,8 @@ enum Command {
     Simulate(simulate::SimulateArgs),
     /// Isotropic remeshing to a target edge length.
     Remesh(remesh::RemeshArgs),
+    /// The visual hull of a decoded scan's silhouettes.
+    Hull(hull::HullArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -91,6 +94,7 @@ pub fn run() -> Result<()> {
         Command::Patterns(a) => patterns::run(&a),
         Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),
+        Command::Hull(a) => hull::run(&a),
         Command::Bench(b) => bench::run(&b),
         Command::Demo(a) => demo::run(&a),
     }

@@ -3,6 +3,7 @@
 //! README (`decoded/` of the scan folder).
 
 pub mod compare;
+pub mod form;
 pub mod graycode;
 pub mod mask;
 pub mod phase;
@@ -12,7 +13,7 @@ use std::path::Path;
 use anyhow::{bail, Context, Result};
 use nalgebra::Point3;
 use opencv::core::{MatTraitConst, MatTraitConstManual, Vec3b, Vec4w};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::patterns::{GrayCode, PhaseShift};
 use crate::scan::Scan;
@@ -129,7 +130,7 @@ pub fn decode_captures(
 }
 
 /// Per-view figures of a decode.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ViewSummary {
     pub view: usize,
     pub object_pixels: usize,
@@ -172,13 +173,7 @@ pub fn decode_scan(
         progress(&summary);
         summaries.push(summary);
     }
-    crate::util::atomic::write_atomic(&out.join("summary.json"), |w| {
-        serde_json::to_writer_pretty(
-            &mut *w,
-            &serde_json::json!({ "fixed_point_scale": fixed.scale, "views": summaries }),
-        )?;
-        Ok(())
-    })?;
+    form::write_summary(&out, &fixed, &summaries)?;
     Ok(summaries)
 }
 
@@ -291,16 +286,11 @@ fn write_view(
             preview.push(Vec3b::from([g, g, g]));
         }
     }
-    write_pixels(
-        &out.join(format!("view_{k:03}_mask.png")),
-        cap.width as u32,
-        cap.height as u32,
+    form::write_view(
+        out,
+        k,
+        (cap.width as u32, cap.height as u32),
         &mask,
-    )?;
-    write_pixels(
-        &out.join(format!("view_{k:03}_monitor.png")),
-        cap.width as u32,
-        cap.height as u32,
         &monitor,
     )?;
     write_pixels(

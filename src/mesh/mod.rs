@@ -5,8 +5,10 @@
 //! turntable frame, y up). Faces are counter-clockwise seen from outside, so that the right-hand
 //! normal points out of the object.
 
+pub mod components;
 pub mod halfedge;
 pub mod io;
+pub mod marching_cubes;
 pub mod remesh;
 pub mod sample;
 pub mod shapes;

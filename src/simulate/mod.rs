@@ -17,6 +17,7 @@ use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
 use serde::Serialize;
 
+use crate::decode::ViewSummary;
 use crate::mesh::io::write_mesh;
 use crate::mesh::validate::ensure_valid;
 use crate::mesh::TriMesh;
@@ -201,8 +202,13 @@ pub fn simulate(
         turntable,
     };
     let truth = out.join("truth");
-    std::fs::create_dir_all(&truth)
-        .with_context(|| format!("cannot create {}", truth.display()))?;
+    let mut dirs = vec![truth.clone()];
+    if o.decoded_only {
+        dirs.push(out.join("decoded"));
+    }
+    for dir in &dirs {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
     scan.save()?;
     write_mesh(&out.join("ground_truth.ply"), &placed)?;
 
@@ -214,6 +220,7 @@ pub fn simulate(
         max_refractions: o.max_refractions,
     };
     let mut tally = Tally::default();
+    let mut decoded = Vec::new();
     let fixed = FixedPoint::for_screen(o.screen_width, o.screen_height);
     let poses = scan.view_poses();
     let setup = |pose: Isometry3<f64>, surface| ViewSetup {
@@ -246,7 +253,16 @@ pub fn simulate(
         let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
         tally.add(&samples, o.spp);
         write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
-        if !o.decoded_only {
+        if o.decoded_only {
+            decoded.push(write_exact_decoded(
+                &out.join("decoded"),
+                k,
+                &samples,
+                &scan.camera,
+                o.spp,
+                &fixed,
+            )?);
+        } else {
             write_captures(
                 &scan.view_dir(k),
                 &samples,
@@ -256,6 +272,9 @@ pub fn simulate(
             )?;
         }
         progress(k);
+    }
+    if o.decoded_only {
+        crate::decode::form::write_summary(&out.join("decoded"), &fixed, &decoded)?;
     }
     let mut report = tally.report(o.views);
     report.direct_footprint_px = direct_footprint_px;
@@ -434,6 +453,40 @@ fn write_truth(
         &mask,
     )?;
     Ok(())
+}
+
+/// The decoded form of a view with exact correspondences (`--decoded-only`): the silhouette of
+/// the pixel-centre rays and their monitor points, cells 1 monitor pixel wide.
+fn write_exact_decoded(
+    dir: &Path,
+    k: usize,
+    samples: &[Sample],
+    cam: &Camera,
+    spp: u32,
+    fixed: &FixedPoint,
+) -> Result<ViewSummary> {
+    let centres = || samples.iter().step_by(spp as usize);
+    let mask: Vec<u8> = centres()
+        .map(|c| if c.outcome.hit_object() { 255 } else { 0 })
+        .collect();
+    let monitor: Vec<Vec4w> = centres()
+        .map(|c| match c.outcome {
+            Outcome::Monitor(_) if c.outcome.hit_object() => {
+                Vec4w::from([fixed.encode(c.monitor.x), fixed.encode(c.monitor.y), 1, 1])
+            }
+            _ => Vec4w::from([NONE; 4]),
+        })
+        .collect();
+    crate::decode::form::write_view(dir, k, (cam.width, cam.height), &mask, &monitor)?;
+    let object = mask.iter().filter(|&&m| m == 255).count();
+    let decoded = monitor.iter().filter(|m| m[0] != NONE).count();
+    Ok(ViewSummary {
+        view: k,
+        object_pixels: object,
+        decoded_share: decoded as f64 / object.max(1) as f64,
+        complete_share: 1.0,
+        warning: (object == 0).then(|| "no object pixel: the object is out of view".to_string()),
+    })
 }
 
 /// Centroid and RMS distance from it of a set of points; `None` for no points.

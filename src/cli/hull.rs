@@ -1,0 +1,97 @@
+//! `glasscan hull SCAN -o hull.ply`.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Result;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use super::decode::parse_views;
+use crate::hull::{silhouettes, visual_hull, HullOptions};
+use crate::mesh::io::write_mesh;
+use crate::scan::Scan;
+
+#[derive(Args, Debug)]
+pub struct HullArgs {
+    /// The scan folder (decoded: `glasscan decode`, or `simulate --decoded-only`).
+    pub scan: PathBuf,
+    /// Output mesh (.ply or .obj), world (turntable) frame, mm.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Voxel size of the fine grid, mm.
+    #[arg(long = "voxel-mm", default_value_t = 1.0)]
+    pub voxel_mm: f64,
+    /// Views to carve with: all (default), or indices and ranges such as 0-35,40.
+    #[arg(long)]
+    pub views: Option<String>,
+    /// Keep points that fall outside the mask in at most this many views (mask errors).
+    #[arg(long, default_value_t = 0)]
+    pub tolerance: usize,
+    /// Remesh the surface to this edge length, mm (default: the voxel size).
+    #[arg(long = "edge-mm", conflicts_with = "raw")]
+    pub edge_mm: Option<f64>,
+    /// Keep the marching-cubes surface as it is (no remesh).
+    #[arg(long)]
+    pub raw: bool,
+    /// Also write the figures as JSON here.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+}
+
+pub fn run(a: &HullArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let scan = Scan::open(&a.scan)?;
+    let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
+    let (sils, warnings) = silhouettes(&scan, &views)?;
+    for w in &warnings {
+        eprintln!("warning: {w}");
+    }
+    let seconds_silhouettes = t0.elapsed().as_secs_f64();
+    let o = HullOptions {
+        voxel_mm: a.voxel_mm,
+        tolerance: a.tolerance,
+        edge_mm: if a.raw {
+            None
+        } else {
+            Some(a.edge_mm.unwrap_or(a.voxel_mm))
+        },
+        ..HullOptions::default()
+    };
+    let bar = ProgressBar::new(0).with_style(
+        ProgressStyle::with_template("hull {msg} [{bar:30}] {pos}/{len} ({eta})")
+            .expect("static template"),
+    );
+    let (mesh, mut report) = visual_hull(&sils, &o, &bar)?;
+    bar.finish_and_clear();
+    report.seconds_silhouettes = seconds_silhouettes;
+    report.warnings = warnings;
+    write_mesh(&a.output, &mesh)?;
+    let c = &report.carve;
+    outln!(
+        "hull of {} views -> {}: {} faces, genus {}, volume {:.0} mm³ in {:.1} s",
+        report.views,
+        a.output.display(),
+        report.faces,
+        report.genus,
+        report.volume_mm3,
+        t0.elapsed().as_secs_f64()
+    );
+    outln!(
+        "  grid {}×{}×{} voxels of {} mm: {} blocks, {} inside, {} on the surface ({} added by the consistency check); {} field points",
+        c.dims[0], c.dims[1], c.dims[2], c.voxel_mm, c.blocks, c.inside_blocks, c.surface_blocks, c.promoted_blocks, c.evaluated_points
+    );
+    outln!(
+        "  time: masks {:.2} s, carve {:.2} s, marching cubes {:.2} s ({} faces, {} speck component(s) dropped), remesh {:.2} s",
+        report.seconds_silhouettes,
+        report.seconds_carve,
+        report.seconds_marching_cubes,
+        report.marching_cubes_faces,
+        report.dropped_components,
+        report.seconds_remesh
+    );
+    if let Some(path) = &a.report {
+        super::write_json(path, &serde_json::to_value(&report)?)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,198 @@
+//! The decoded form of a scan on disk (`SCAN/decoded/`, documented in the README), written by
+//! `glasscan decode` and by `glasscan simulate --decoded-only`, read by `hull` and the losses.
+//!
+//! - `view_NNN_mask.png`: 8-bit, 255 for object pixels;
+//! - `view_NNN_monitor.png`: 16-bit, 4 channels: (u + 1)·s, (v + 1)·s of the decoded monitor
+//!   point (monitor pixels) and the cell widths along u and v (monitor pixels); 65535 where
+//!   nothing decodes;
+//! - `summary.json`: `fixed_point_scale` s and per-view figures, with the warning of any view that
+//!   could not be decoded (such a view has no mask).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec4w};
+
+use super::ViewSummary;
+use crate::util::fixed::FixedPoint;
+use crate::util::image::write_pixels;
+
+/// The decoded monitor point of one camera pixel: coordinates and cell widths, monitor pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MonitorTarget {
+    pub u: f64,
+    pub v: f64,
+    pub cell_u: f64,
+    pub cell_v: f64,
+}
+
+/// One decoded view: row-major per camera pixel.
+#[derive(Clone, Debug)]
+pub struct DecodedView {
+    pub view: usize,
+    pub width: u32,
+    pub height: u32,
+    /// Object pixels (the silhouette).
+    pub mask: Vec<bool>,
+    /// The decoded monitor point, where one decoded.
+    pub targets: Vec<Option<MonitorTarget>>,
+}
+
+/// Path of view `k`'s mask in the decoded folder `dir`.
+pub fn mask_path(dir: &Path, k: usize) -> PathBuf {
+    dir.join(format!("view_{k:03}_mask.png"))
+}
+
+/// Path of view `k`'s monitor points in the decoded folder `dir`.
+pub fn monitor_path(dir: &Path, k: usize) -> PathBuf {
+    dir.join(format!("view_{k:03}_monitor.png"))
+}
+
+/// Writes view `k`'s mask (0/255) and monitor points (encoded as above) into `dir`.
+pub fn write_view(
+    dir: &Path,
+    k: usize,
+    (width, height): (u32, u32),
+    mask: &[u8],
+    monitor: &[Vec4w],
+) -> Result<()> {
+    write_pixels(&mask_path(dir, k), width, height, mask)?;
+    write_pixels(&monitor_path(dir, k), width, height, monitor)
+}
+
+/// Writes `summary.json`.
+pub fn write_summary(dir: &Path, fixed: &FixedPoint, views: &[ViewSummary]) -> Result<()> {
+    crate::util::atomic::write_atomic(&dir.join("summary.json"), |w| {
+        serde_json::to_writer_pretty(
+            &mut *w,
+            &serde_json::json!({ "fixed_point_scale": fixed.scale, "views": views }),
+        )?;
+        Ok(())
+    })
+    .with_context(|| format!("cannot write {}", dir.join("summary.json").display()))
+}
+
+/// The decoded folder of a scan, opened for reading.
+#[derive(Clone, Debug)]
+pub struct DecodedScan {
+    pub dir: PathBuf,
+    pub fixed: FixedPoint,
+    /// Image size every view must have (the camera's), pixels.
+    pub size: (u32, u32),
+    summaries: Vec<ViewSummary>,
+}
+
+impl DecodedScan {
+    /// Opens `scan_dir/decoded` for images of `size`; a clear error when it was never decoded.
+    pub fn open(scan_dir: &Path, size: (u32, u32)) -> Result<Self> {
+        let dir = scan_dir.join("decoded");
+        let path = dir.join("summary.json");
+        if !path.is_file() {
+            bail!(
+                "{}: the scan has no decoded data; run `glasscan decode {}` first (or simulate with --decoded-only)",
+                path.display(),
+                scan_dir.display()
+            );
+        }
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        #[derive(serde::Deserialize)]
+        struct Summary {
+            fixed_point_scale: f64,
+            views: Vec<ViewSummary>,
+        }
+        let s: Summary = serde_json::from_str(&text)
+            .with_context(|| format!("{}: not a decode summary", path.display()))?;
+        if s.fixed_point_scale.is_nan() || s.fixed_point_scale <= 0.0 {
+            bail!("{}: fixed_point_scale must be positive", path.display());
+        }
+        Ok(Self {
+            dir,
+            fixed: FixedPoint {
+                scale: s.fixed_point_scale,
+            },
+            size,
+            summaries: s.views,
+        })
+    }
+
+    /// The warning decode recorded for view `k`, if any.
+    pub fn warning(&self, k: usize) -> Option<&str> {
+        self.summaries
+            .iter()
+            .find(|s| s.view == k)
+            .and_then(|s| s.warning.as_deref())
+    }
+
+    /// View `k`'s mask as 0/255 bytes; `Ok(None)` for a view decode skipped with a warning.
+    pub fn mask(&self, k: usize) -> Result<Option<Vec<u8>>> {
+        let path = mask_path(&self.dir, k);
+        if !path.is_file() {
+            if self.warning(k).is_some() {
+                return Ok(None);
+            }
+            bail!(
+                "{}: view {k} is not decoded; run `glasscan decode` on all views",
+                path.display()
+            );
+        }
+        let m = self.load(&path, opencv::core::CV_8UC1)?;
+        Ok(Some(m.data_typed::<u8>()?.to_vec()))
+    }
+
+    /// View `k` decoded; `Ok(None)` for a view decode skipped with a warning.
+    pub fn view(&self, k: usize) -> Result<Option<DecodedView>> {
+        let Some(mask) = self.mask(k)? else {
+            return Ok(None);
+        };
+        let path = monitor_path(&self.dir, k);
+        let m = self.load(&path, opencv::core::CV_16UC4)?;
+        let targets = m
+            .data_typed::<Vec4w>()?
+            .iter()
+            .map(|p| {
+                Some(MonitorTarget {
+                    u: self.fixed.decode(p[0])?,
+                    v: self.fixed.decode(p[1])?,
+                    cell_u: p[2] as f64,
+                    cell_v: p[3] as f64,
+                })
+            })
+            .collect();
+        Ok(Some(DecodedView {
+            view: k,
+            width: self.size.0,
+            height: self.size.1,
+            mask: mask.iter().map(|&b| b != 0).collect(),
+            targets,
+        }))
+    }
+
+    fn load(&self, path: &Path, typ: i32) -> Result<Mat> {
+        if !path.is_file() {
+            bail!("{}: missing from the decoded data", path.display());
+        }
+        let m = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_UNCHANGED)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        if m.empty() {
+            bail!("{}: not a readable image", path.display());
+        }
+        if (m.cols() as u32, m.rows() as u32) != self.size {
+            bail!(
+                "{}: {}×{} pixels, but the camera (camera.yml) takes {}×{}; decode again",
+                path.display(),
+                m.cols(),
+                m.rows(),
+                self.size.0,
+                self.size.1
+            );
+        }
+        if m.typ() != typ {
+            bail!(
+                "{}: unexpected pixel type (see the README's decoded form)",
+                path.display()
+            );
+        }
+        Ok(if m.is_continuous() { m } else { m.try_clone()? })
+    }
+}

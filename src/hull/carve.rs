@@ -1,0 +1,317 @@
+//! Space carving against the silhouettes, coarse to fine, into the block-sparse field that
+//! marching cubes reads.
+//!
+//! The carving field at a world point is the (k+1)-th smallest of the views' signed distances
+//! (mm, see [`Silhouette::signed_distance_mm`]): > 0 where the point projects inside the mask in
+//! all views but at most k. It changes by about as much as the point moves (a projection moves
+//! by f·δ/z pixels when the point moves by δ mm), which is what lets a whole cell be classified
+//! from its centre.
+//!
+//! 1. Coarse: cells of about 1/64 of a box around the turntable axis spanned by the camera's
+//!    field of view; cells whose centre is far outside are dropped; the rest bound the fine box.
+//! 2. Fine: the fine box is cut into blocks of `block`³ voxels; a block is inside, outside, or on
+//!    the surface from the field at its centre (two bitsets); only surface blocks are sampled at
+//!    every voxel corner. A block whose class disagrees with a sampled value on a shared face,
+//!    edge or corner becomes a surface block too, until none does — so every cell that changes
+//!    sign is sampled, and marching cubes gets a closed surface.
+
+use anyhow::{bail, Result};
+use indicatif::ProgressBar;
+use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
+
+use super::silhouette::Silhouette;
+use crate::mesh::marching_cubes::{FieldBlock, Grid};
+
+/// The carving field over a set of silhouettes.
+pub struct Field<'a> {
+    pub silhouettes: &'a [Silhouette],
+    /// Views a point may fall outside of and still be kept (mask errors).
+    pub tolerance: usize,
+}
+
+impl Field<'_> {
+    /// The field at `p` (mm, world frame); stops early, returning a value ≤ `floor`, once the
+    /// point is known to be further outside than `floor` (< 0).
+    pub fn value(&self, p: &Point3<f64>, floor: f64) -> f64 {
+        let k = self.tolerance;
+        let mut smallest = [f64::INFINITY; 8];
+        let keep = (k + 1).min(smallest.len());
+        for s in self.silhouettes {
+            let d = s.signed_distance_mm(p);
+            if d < smallest[keep - 1] {
+                let mut i = keep - 1;
+                while i > 0 && smallest[i - 1] > d {
+                    smallest[i] = smallest[i - 1];
+                    i -= 1;
+                }
+                smallest[i] = d;
+                if smallest[keep - 1] < floor {
+                    break;
+                }
+            }
+        }
+        smallest[keep - 1]
+    }
+}
+
+/// Figures of a carve.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct CarveStats {
+    /// The fine grid: voxel size (mm), voxels per axis, origin (mm, world frame).
+    pub voxel_mm: f64,
+    pub dims: [usize; 3],
+    pub origin: [f64; 3],
+    pub blocks: usize,
+    pub inside_blocks: usize,
+    pub surface_blocks: usize,
+    /// Surface blocks added because a neighbour's samples disagreed with their class.
+    pub promoted_blocks: usize,
+    /// Field evaluations (points × views, before early exits: points only).
+    pub evaluated_points: usize,
+}
+
+/// Carves the fine field: returns the grid, the sampled surface blocks, and figures.
+pub fn carve(
+    field: &Field,
+    camera_centre_mm: Point3<f64>,
+    half_fov_tan: f64,
+    voxel_mm: f64,
+    block: usize,
+    bar: &ProgressBar,
+) -> Result<(Grid, Vec<FieldBlock>, CarveStats)> {
+    let mut stats = CarveStats {
+        voxel_mm,
+        ..Default::default()
+    };
+    // 1. Coarse: a cube around the axis point nearest the camera, as wide as the field of view
+    //    at that distance.
+    let axis_centre = Point3::new(0.0, camera_centre_mm.y, 0.0);
+    let dist = (camera_centre_mm - axis_centre).norm();
+    let half = 1.2 * dist * half_fov_tan;
+    let n0 = 64usize;
+    let cell0 = 2.0 * half / n0 as f64;
+    let lo0 = axis_centre - Vector3::repeat(half);
+    let reach0 = 0.9 * cell0 + 2.0 * voxel_mm;
+    bar.set_message("coarse carve");
+    let alive: Vec<[usize; 3]> = (0..n0 * n0 * n0)
+        .into_par_iter()
+        .filter_map(|idx| {
+            let c = [idx % n0, (idx / n0) % n0, idx / (n0 * n0)];
+            let p =
+                lo0 + cell0 * Vector3::new(c[0] as f64 + 0.5, c[1] as f64 + 0.5, c[2] as f64 + 0.5);
+            (field.value(&p, -reach0) > -reach0).then_some(c)
+        })
+        .collect();
+    stats.evaluated_points += n0 * n0 * n0;
+    if alive.is_empty() {
+        bail!("the silhouettes leave nothing: no point of space projects inside every mask (are the masks and the calibration of the same scan?)");
+    }
+    let mut cmin = [usize::MAX; 3];
+    let mut cmax = [0usize; 3];
+    for c in &alive {
+        for a in 0..3 {
+            cmin[a] = cmin[a].min(c[a]);
+            cmax[a] = cmax[a].max(c[a]);
+        }
+    }
+    if (0..3).any(|a| cmin[a] == 0 || cmax[a] == n0 - 1) {
+        bail!("the hull is not bounded inside the camera's field of view: too few views from different directions, or masks that reach the image border");
+    }
+    // 2. Fine grid over the surviving coarse cells, a whole number of blocks, with a voxel of
+    //    margin; the outermost grid points are forced outside.
+    let lo = lo0 + cell0 * Vector3::new(cmin[0] as f64, cmin[1] as f64, cmin[2] as f64)
+        - Vector3::repeat(voxel_mm);
+    let hi = lo0
+        + cell0
+            * Vector3::new(
+                cmax[0] as f64 + 1.0,
+                cmax[1] as f64 + 1.0,
+                cmax[2] as f64 + 1.0,
+            )
+        + Vector3::repeat(voxel_mm);
+    let nb: [usize; 3] =
+        std::array::from_fn(|a| ((hi[a] - lo[a]) / (voxel_mm * block as f64)).ceil() as usize);
+    if nb.iter().map(|&n| n * block).max().unwrap_or(0) >= 1 << 20 {
+        bail!("--voxel-mm {voxel_mm} is too fine for an object this size (over a million voxels per axis)");
+    }
+    let dims = nb.map(|n| n * block);
+    stats.dims = dims;
+    stats.origin = [lo.x, lo.y, lo.z];
+    let grid = Grid {
+        origin: lo,
+        step: voxel_mm,
+        block,
+    };
+    let nblocks = nb[0] * nb[1] * nb[2];
+    stats.blocks = nblocks;
+    let bsize = voxel_mm * block as f64;
+    let reach = 1.5 * (3f64.sqrt() / 2.0) * bsize + 2.0 * voxel_mm;
+    let point = |g: [usize; 3]| lo + voxel_mm * Vector3::new(g[0] as f64, g[1] as f64, g[2] as f64);
+    let on_border = |g: [usize; 3]| (0..3).any(|a| g[a] == 0 || g[a] == dims[a]);
+    bar.set_message("classify blocks");
+    // Classes: 0 outside, 1 inside, 2 surface.
+    let classes: Vec<u8> = (0..nblocks)
+        .into_par_iter()
+        .map(|b| {
+            let c = [b % nb[0], (b / nb[0]) % nb[1], b / (nb[0] * nb[1])];
+            let centre =
+                lo + bsize * Vector3::new(c[0] as f64 + 0.5, c[1] as f64 + 0.5, c[2] as f64 + 0.5);
+            let v = field.value(&centre, -reach);
+            let touches_grid_border = (0..3).any(|a| c[a] == 0 || c[a] == nb[a] - 1);
+            if v < -reach {
+                0
+            } else if v > reach && !touches_grid_border {
+                1
+            } else {
+                2
+            }
+        })
+        .collect();
+    stats.evaluated_points += nblocks;
+    let mut inside = BitSet::new(nblocks);
+    let mut surface = BitSet::new(nblocks);
+    for (b, &c) in classes.iter().enumerate() {
+        match c {
+            1 => inside.set(b),
+            2 => surface.set(b),
+            _ => {}
+        }
+    }
+    drop(classes);
+    stats.inside_blocks = inside.count();
+    let n1 = block + 1;
+    let sample = |b: usize| -> FieldBlock {
+        let c = [b % nb[0], (b / nb[0]) % nb[1], b / (nb[0] * nb[1])];
+        let corner = c.map(|x| x * block);
+        let mut values = Vec::with_capacity(n1 * n1 * n1);
+        for k in 0..n1 {
+            for j in 0..n1 {
+                for i in 0..n1 {
+                    let g = [corner[0] + i, corner[1] + j, corner[2] + k];
+                    let v = field.value(&point(g), -2.0 * voxel_mm);
+                    values.push(if on_border(g) {
+                        v.min(-0.01 * voxel_mm)
+                    } else {
+                        v
+                    } as f32);
+                }
+            }
+        }
+        FieldBlock { corner, values }
+    };
+    let mut todo: Vec<usize> = surface.iter().collect();
+    let mut blocks: Vec<FieldBlock> = Vec::new();
+    let initial = todo.len();
+    bar.set_length(initial as u64);
+    bar.set_position(0);
+    bar.set_message("sample surface blocks");
+    while !todo.is_empty() {
+        let sampled: Vec<FieldBlock> = todo
+            .par_iter()
+            .map(|&b| {
+                let s = sample(b);
+                bar.inc(1);
+                s
+            })
+            .collect();
+        stats.evaluated_points += sampled.len() * n1 * n1 * n1;
+        // Blocks whose class disagrees with a sample they share.
+        let mut promote = Vec::new();
+        for blk in &sampled {
+            let bc = blk.corner.map(|x| x / block);
+            for k in 0..n1 {
+                for j in 0..n1 {
+                    for i in 0..n1 {
+                        let l = [i, j, k];
+                        if l.iter().all(|&x| x > 0 && x < block) {
+                            continue;
+                        }
+                        let positive = blk.values[i + n1 * (j + n1 * k)] > 0.0;
+                        for_each_block_sharing(l, bc, block, nb, |nbk| {
+                            if !surface.get(nbk) && inside.get(nbk) != positive {
+                                surface.set(nbk);
+                                inside.clear(nbk);
+                                promote.push(nbk);
+                            }
+                        });
+                    }
+                }
+            }
+        }
+        blocks.extend(sampled);
+        stats.promoted_blocks += promote.len();
+        bar.inc_length(promote.len() as u64);
+        todo = promote;
+    }
+    stats.surface_blocks = blocks.len();
+    stats.inside_blocks = inside.count();
+    // Deterministic order whatever the promotion rounds were.
+    blocks.sort_unstable_by_key(|b| (b.corner[2], b.corner[1], b.corner[0]));
+    Ok((grid, blocks, stats))
+}
+
+/// Calls `f` with every other block (index) containing the sample at local position `l` of the
+/// block at block coordinates `bc`.
+fn for_each_block_sharing(
+    l: [usize; 3],
+    bc: [usize; 3],
+    block: usize,
+    nb: [usize; 3],
+    mut f: impl FnMut(usize),
+) {
+    let options = |a: usize| -> [Option<isize>; 2] {
+        if l[a] == 0 {
+            [Some(0), Some(-1)]
+        } else if l[a] == block {
+            [Some(0), Some(1)]
+        } else {
+            [Some(0), None]
+        }
+    };
+    for dz in options(2).into_iter().flatten() {
+        for dy in options(1).into_iter().flatten() {
+            for dx in options(0).into_iter().flatten() {
+                if (dx, dy, dz) == (0, 0, 0) {
+                    continue;
+                }
+                let c = [
+                    bc[0] as isize + dx,
+                    bc[1] as isize + dy,
+                    bc[2] as isize + dz,
+                ];
+                if (0..3).all(|a| c[a] >= 0 && (c[a] as usize) < nb[a]) {
+                    f(c[0] as usize + nb[0] * (c[1] as usize + nb[1] * c[2] as usize));
+                }
+            }
+        }
+    }
+}
+
+/// A fixed-size bitset (one bit per block).
+struct BitSet(Vec<u64>);
+
+impl BitSet {
+    fn new(n: usize) -> Self {
+        Self(vec![0; n.div_ceil(64)])
+    }
+    fn get(&self, i: usize) -> bool {
+        self.0[i / 64] >> (i % 64) & 1 == 1
+    }
+    fn set(&mut self, i: usize) {
+        self.0[i / 64] |= 1 << (i % 64);
+    }
+    fn clear(&mut self, i: usize) {
+        self.0[i / 64] &= !(1 << (i % 64));
+    }
+    fn count(&self) -> usize {
+        self.0.iter().map(|w| w.count_ones() as usize).sum()
+    }
+    fn iter(&self) -> impl Iterator<Item = usize> + '_ {
+        self.0.iter().enumerate().flat_map(|(w, &bits)| {
+            (0..64)
+                .filter(move |b| bits >> b & 1 == 1)
+                .map(move |b| w * 64 + b)
+        })
+    }
+}

@@ -1,0 +1,187 @@
+//! `glasscan hull`: the visual hull of the decoded silhouettes (DESIGN §8) — the starting shape of
+//! the optimisation. Space carving ([`carve`]) into a block-sparse field, marching cubes
+//! ([`crate::mesh::marching_cubes`]), optionally an isotropic remesh.
+
+pub mod carve;
+pub mod silhouette;
+
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use indicatif::ProgressBar;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::decode::form::DecodedScan;
+use crate::mesh::components::keep_large_components;
+use crate::mesh::marching_cubes::marching_cubes;
+use crate::mesh::remesh::{remesh, RemeshOptions};
+use crate::mesh::validate::ensure_valid;
+use crate::mesh::TriMesh;
+use crate::scan::Scan;
+use carve::{carve, CarveStats, Field};
+use silhouette::Silhouette;
+
+/// Components of the carved surface with less than this share of the largest one's volume are
+/// dropped (specks left where thin parts break up at the voxel size).
+pub const SPECK_SHARE: f64 = 0.01;
+
+/// Settings of a hull.
+#[derive(Clone, Copy, Debug)]
+pub struct HullOptions {
+    /// Fine voxel size, mm.
+    pub voxel_mm: f64,
+    /// A point survives if it projects inside the mask in all views but this many.
+    pub tolerance: usize,
+    /// Voxels per block side of the sparse fine grid.
+    pub block: usize,
+    /// Remesh the marching-cubes surface to this edge length (mm); `None` keeps it as it is.
+    pub edge_mm: Option<f64>,
+}
+
+impl Default for HullOptions {
+    fn default() -> Self {
+        Self {
+            voxel_mm: 1.0,
+            tolerance: 0,
+            block: 4,
+            edge_mm: Some(1.0),
+        }
+    }
+}
+
+/// Figures of a hull.
+#[derive(Clone, Debug, Serialize)]
+pub struct HullReport {
+    pub views: usize,
+    pub carve: CarveStats,
+    pub marching_cubes_faces: usize,
+    /// Components dropped as specks (see [`SPECK_SHARE`]).
+    pub dropped_components: usize,
+    pub faces: usize,
+    pub genus: i64,
+    pub volume_mm3: f64,
+    pub seconds_silhouettes: f64,
+    pub seconds_carve: f64,
+    pub seconds_marching_cubes: f64,
+    pub seconds_remesh: f64,
+    pub warnings: Vec<String>,
+}
+
+/// Reads the masks of `views` from the decoded scan; views decode skipped are left out with a
+/// warning. Errors for empty masks (they would carve everything away) and when no view is left.
+pub fn silhouettes(scan: &Scan, views: &[usize]) -> Result<(Vec<Silhouette>, Vec<String>)> {
+    let decoded = DecodedScan::open(&scan.dir, (scan.camera.width, scan.camera.height))?;
+    let poses = scan.view_poses();
+    let mut warnings = Vec::new();
+    let loaded: Vec<Result<Option<Silhouette>>> = views
+        .par_iter()
+        .map(|&k| {
+            let Some(mask) = decoded.mask(k)? else {
+                return Ok(None);
+            };
+            Silhouette::from_mask(k, &mask, &scan.camera, poses[k]).map(Some)
+        })
+        .collect();
+    let mut sils = Vec::new();
+    for (&k, s) in views.iter().zip(loaded) {
+        match s? {
+            None => warnings.push(format!(
+                "view {k} left out: {}",
+                decoded.warning(k).unwrap_or("not decoded")
+            )),
+            Some(s) if s.area_px == 0 => bail!(
+                "view {k}: the mask is empty, which would carve the whole object away; check its decode (decoded/preview/view_{k:03}.png) or leave the view out with --views"
+            ),
+            Some(s) => {
+                if s.touches_border {
+                    warnings.push(format!(
+                        "view {k}: the mask touches the image border; the object may be cut off there and the hull too small"
+                    ));
+                }
+                sils.push(s);
+            }
+        }
+    }
+    if sils.is_empty() {
+        bail!(
+            "no decoded view with a silhouette among the {} requested",
+            views.len()
+        );
+    }
+    Ok((sils, warnings))
+}
+
+/// The visual hull of `sils` (all taken with the same camera), world frame, outward, watertight.
+pub fn visual_hull(
+    sils: &[Silhouette],
+    o: &HullOptions,
+    bar: &ProgressBar,
+) -> Result<(TriMesh, HullReport)> {
+    if !(o.voxel_mm > 0.0 && o.voxel_mm.is_finite()) {
+        bail!("--voxel-mm {}: it must be a positive size", o.voxel_mm);
+    }
+    if o.tolerance >= sils.len() || o.tolerance > 7 {
+        bail!(
+            "--tolerance {}: it must be below the number of views ({}) and at most 7",
+            o.tolerance,
+            sils.len()
+        );
+    }
+    let cam = &sils[0].camera;
+    let centre = sils[0].pose.inverse() * nalgebra::Point3::origin();
+    let half_fov_tan = [
+        (0.0, 0.0),
+        (cam.width as f64 - 1.0, cam.height as f64 - 1.0),
+    ]
+    .iter()
+    .map(|&(u, v): &(f64, f64)| ((u - cam.cx) / cam.fx).hypot((v - cam.cy) / cam.fy))
+    .fold(0.0, f64::max);
+    let field = Field {
+        silhouettes: sils,
+        tolerance: o.tolerance,
+    };
+    let t0 = Instant::now();
+    let (grid, blocks, stats) = carve(&field, centre, half_fov_tan, o.voxel_mm, o.block, bar)?;
+    let seconds_carve = t0.elapsed().as_secs_f64();
+    bar.set_message("marching cubes");
+    let t1 = Instant::now();
+    let mc = marching_cubes(&grid, &blocks);
+    let seconds_marching_cubes = t1.elapsed().as_secs_f64();
+    if mc.faces.is_empty() {
+        bail!("the hull is empty at --voxel-mm {}: the silhouettes' intersection is thinner than a voxel", o.voxel_mm);
+    }
+    ensure_valid(&mc).context("internal error: marching cubes gave an invalid surface")?;
+    let mc_faces = mc.faces.len();
+    // Thin parts carved at the voxel size leave specks; they are not part of the object.
+    let (mc, dropped_components) = keep_large_components(&mc, SPECK_SHARE);
+    let t2 = Instant::now();
+    let mesh = match o.edge_mm {
+        Some(h) => {
+            bar.set_message("remesh");
+            remesh(&mc, &RemeshOptions::uniform(h))?
+        }
+        None => mc,
+    };
+    let seconds_remesh = t2.elapsed().as_secs_f64();
+    let report = ensure_valid(&mesh).context("the remeshed hull is not a valid surface")?;
+    let faces = mesh.faces.len();
+    let volume_mm3 = mesh.signed_volume();
+    Ok((
+        mesh,
+        HullReport {
+            views: sils.len(),
+            carve: stats,
+            marching_cubes_faces: mc_faces,
+            dropped_components,
+            faces,
+            genus: report.genus.unwrap_or(0),
+            volume_mm3,
+            seconds_silhouettes: 0.0,
+            seconds_carve,
+            seconds_marching_cubes,
+            seconds_remesh,
+            warnings: Vec::new(),
+        },
+    ))
+}

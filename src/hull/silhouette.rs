@@ -1,0 +1,93 @@
+//! One view's silhouette as a signed distance: how far inside (> 0) or outside (< 0) the mask a
+//! world point projects, in pixels and converted to mm at the point's depth.
+
+use anyhow::{bail, Result};
+use nalgebra::{Isometry3, Point3};
+use opencv::core::{Mat, MatTraitConstManual, CV_32F};
+use opencv::imgproc::{distance_transform, DIST_L2, DIST_MASK_PRECISE};
+
+use crate::rig::Camera;
+
+/// A view's mask as a signed distance image with the view's camera and pose.
+#[derive(Clone, Debug)]
+pub struct Silhouette {
+    pub view: usize,
+    pub camera: Camera,
+    /// World → camera transform of the view (mm).
+    pub pose: Isometry3<f64>,
+    /// Per pixel (row-major): distance to the silhouette's outline, pixels, > 0 inside. The
+    /// outline runs between pixel centres, so a boundary pixel has ±0.5.
+    sd: Vec<f32>,
+    /// Object pixels.
+    pub area_px: usize,
+    /// The mask reaches the image border (the object may be cut off).
+    pub touches_border: bool,
+}
+
+impl Silhouette {
+    /// From a mask (non-zero = object) of the camera's size.
+    pub fn from_mask(
+        view: usize,
+        mask: &[u8],
+        camera: &Camera,
+        pose: Isometry3<f64>,
+    ) -> Result<Self> {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        if mask.len() != w * h {
+            bail!(
+                "view {view}: the mask has {} pixels, the camera {w}×{h}",
+                mask.len()
+            );
+        }
+        let inside: Vec<u8> = mask.iter().map(|&m| if m != 0 { 255 } else { 0 }).collect();
+        let outside: Vec<u8> = inside.iter().map(|&m| 255 - m).collect();
+        let dist = |src: &[u8]| -> Result<Vec<f32>> {
+            let m = Mat::new_rows_cols_with_data(h as i32, w as i32, src)?;
+            let mut d = Mat::default();
+            distance_transform(&m, &mut d, DIST_L2, DIST_MASK_PRECISE, CV_32F)?;
+            Ok(d.data_typed::<f32>()?.to_vec())
+        };
+        let area_px = inside.iter().filter(|&&m| m != 0).count();
+        // With no pixel of one kind OpenCV returns a huge distance; the caller rejects empty
+        // masks, and a full mask is simply "inside everywhere on the image".
+        let (din, dout) = (dist(&inside)?, dist(&outside)?);
+        let sd = inside
+            .iter()
+            .zip(din.iter().zip(&dout))
+            .map(|(&m, (&a, &b))| if m != 0 { a - 0.5 } else { 0.5 - b })
+            .collect();
+        let touches_border = (0..w).any(|x| inside[x] != 0 || inside[(h - 1) * w + x] != 0)
+            || (0..h).any(|y| inside[y * w] != 0 || inside[y * w + w - 1] != 0);
+        Ok(Self {
+            view,
+            camera: camera.clone(),
+            pose,
+            sd,
+            area_px,
+            touches_border,
+        })
+    }
+
+    /// Signed distance (mm, > 0 inside the silhouette cone) of world point `p` (mm): the image
+    /// distance of its projection to the outline, bilinear between pixel centres, scaled by
+    /// depth / focal length. Outside the image, the distance to the image adds to the outside.
+    pub fn signed_distance_mm(&self, p: &Point3<f64>) -> f64 {
+        let q = self.pose * p;
+        let Some(px) = self.camera.project(&q) else {
+            return -1e9;
+        };
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let (x, y) = (
+            px.x.clamp(0.0, (w - 1) as f64),
+            px.y.clamp(0.0, (h - 1) as f64),
+        );
+        let beyond = (px.x - x).hypot(px.y - y);
+        let (x0, y0) = ((x as usize).min(w - 2), (y as usize).min(h - 2));
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let at = |i: usize, j: usize| self.sd[j * w + i] as f64;
+        let v = (1.0 - fy) * ((1.0 - fx) * at(x0, y0) + fx * at(x0 + 1, y0))
+            + fy * ((1.0 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1));
+        let px_to_mm = q.z / (0.5 * (self.camera.fx + self.camera.fy));
+        (v - beyond) * px_to_mm
+    }
+}
