@@ -9,6 +9,7 @@ pub mod cli;
 pub mod decode;
 pub mod eval;
 pub mod hull;
+pub mod loss;
 pub mod mesh;
 pub mod patterns;
 pub mod rig;

@@ -359,3 +359,41 @@ fn bad_masks_are_clear_errors_or_named_warnings() {
     );
     assert!(!err(&r).contains("panicked"));
 }
+
+#[test]
+fn hulls_of_the_shared_scans_contain_the_true_shapes() {
+    for name in ["pig", "horse", "dog"] {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../shared/meshes")
+            .join(format!("{name}_scan.ply"));
+        let mesh = glasscan::mesh::io::read_mesh(&path)
+            .unwrap_or_else(|e| panic!("{}: {e} (the shared meshes are needed)", path.display()));
+        let dir = tempfile::tempdir().unwrap();
+        let opts = SimulateOptions {
+            views: 72,
+            width: 640,
+            height: 480,
+            spp: 1,
+            decoded_only: true,
+            ..Default::default()
+        };
+        simulate(&mesh, dir.path(), &opts, |_| ()).unwrap();
+        let scan = Scan::open(dir.path()).unwrap();
+        let (sils, warnings) =
+            glasscan::hull::silhouettes(&scan, &(0..72).collect::<Vec<_>>()).unwrap();
+        assert!(warnings.is_empty(), "{name}: {warnings:?}");
+        let voxel = 1.5;
+        let o = HullOptions {
+            voxel_mm: voxel,
+            ..HullOptions::default()
+        };
+        let (hull, _) = visual_hull(&sils, &o, &ProgressBar::hidden()).unwrap();
+        ensure_valid(&hull).unwrap();
+        let truth = glasscan::mesh::io::read_mesh(&dir.path().join("ground_truth.ply")).unwrap();
+        let samples: Vec<Point3<f64>> = sample_surface(&truth, 100_000, 4)
+            .into_iter()
+            .map(|(p, _)| p)
+            .collect();
+        assert_eq!(outside_points(&hull, &samples, voxel), 0, "{name}");
+    }
+}

@@ -95,6 +95,7 @@ impl Surface for Sphere {
                         point,
                         geometric_normal: n,
                         shading_normal: n,
+                        prim: 0,
                     });
                     break;
                 }
@@ -137,8 +138,10 @@ fn ball_lens_matches_the_analytic_exit_ray_at_every_scale() {
             let exit = Point3::new(r * phi.cos(), r * phi.sin(), 0.0);
             let dev = 2.0 * (th_i - th_t);
             let dir = Vector3::new(dev.cos(), -dev.sin(), 0.0);
-            // The path's origin is the exit point moved by the offset along the exit ray.
-            let back = p.origin - p.dir * sphere.offset();
+            // The path's origin is the exit point moved along the exit ray until it is the
+            // offset away from the tangent plane.
+            let n = (exit - sphere.c) / r;
+            let back = p.origin - p.dir * (sphere.offset() / p.dir.dot(&n).abs().max(1e-3));
             assert!(
                 (back - exit).norm() <= 1e-9 * r,
                 "scale {scale}, h {f}: exit {back:?} vs {exit:?}"

@@ -68,6 +68,27 @@ impl Silhouette {
         })
     }
 
+    /// The signed distance image at pixel coordinates (x, y), bilinear between pixel centres
+    /// (clamped to the image), and its gradient (per pixel).
+    pub fn sample_px(&self, x: f64, y: f64) -> (f64, f64, f64) {
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let (x, y) = (x.clamp(0.0, (w - 1) as f64), y.clamp(0.0, (h - 1) as f64));
+        let (x0, y0) = ((x as usize).min(w - 2), (y as usize).min(h - 2));
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let at = |i: usize, j: usize| self.sd[j * w + i] as f64;
+        let (a, b, c, d) = (
+            at(x0, y0),
+            at(x0 + 1, y0),
+            at(x0, y0 + 1),
+            at(x0 + 1, y0 + 1),
+        );
+        (
+            (1.0 - fy) * ((1.0 - fx) * a + fx * b) + fy * ((1.0 - fx) * c + fx * d),
+            (1.0 - fy) * (b - a) + fy * (d - c),
+            (1.0 - fx) * (c - a) + fx * (d - b),
+        )
+    }
+
     /// Signed distance (mm, > 0 inside the silhouette cone) of world point `p` (mm): the image
     /// distance of its projection to the outline, bilinear between pixel centres, scaled by
     /// depth / focal length. Outside the image, the distance to the image adds to the outside.
@@ -76,18 +97,9 @@ impl Silhouette {
         let Some(px) = self.camera.project(&q) else {
             return -1e9;
         };
-        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
-        let (x, y) = (
-            px.x.clamp(0.0, (w - 1) as f64),
-            px.y.clamp(0.0, (h - 1) as f64),
-        );
-        let beyond = (px.x - x).hypot(px.y - y);
-        let (x0, y0) = ((x as usize).min(w - 2), (y as usize).min(h - 2));
-        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
-        let at = |i: usize, j: usize| self.sd[j * w + i] as f64;
-        let v = (1.0 - fy) * ((1.0 - fx) * at(x0, y0) + fx * at(x0 + 1, y0))
-            + fy * ((1.0 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1));
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        let beyond = (px.x - px.x.clamp(0.0, w - 1.0)).hypot(px.y - px.y.clamp(0.0, h - 1.0));
         let px_to_mm = q.z / (0.5 * (self.camera.fx + self.camera.fy));
-        (v - beyond) * px_to_mm
+        (self.sample_px(px.x, px.y).0 - beyond) * px_to_mm
     }
 }

@@ -26,7 +26,40 @@ pub struct TriMesh {
     pub faces: Vec<[u32; 3]>,
 }
 
+/// An edge shared by two faces: its vertices and the faces.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct InteriorEdge {
+    pub verts: [u32; 2],
+    pub faces: [u32; 2],
+}
+
 impl TriMesh {
+    /// Every edge with exactly two faces (all edges of a closed manifold mesh), sorted by vertices.
+    pub fn interior_edges(&self) -> Vec<InteriorEdge> {
+        let mut half: Vec<(u32, u32, u32)> = Vec::with_capacity(3 * self.faces.len());
+        for (f, t) in self.faces.iter().enumerate() {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                half.push((a.min(b), a.max(b), f as u32));
+            }
+        }
+        half.sort_unstable();
+        let same = |a: Option<&(u32, u32, u32)>, b: &(u32, u32, u32)| {
+            a.is_some_and(|a| (a.0, a.1) == (b.0, b.1))
+        };
+        (0..half.len().saturating_sub(1))
+            .filter(|&i| {
+                same(Some(&half[i]), &half[i + 1])
+                    && (i == 0 || !same(Some(&half[i - 1]), &half[i]))
+                    && !same(half.get(i + 2), &half[i])
+            })
+            .map(|i| InteriorEdge {
+                verts: [half[i].0, half[i].1],
+                faces: [half[i].2, half[i + 1].2],
+            })
+            .collect()
+    }
+
     /// A mesh from positions and faces; the caller guarantees that indices are in range
     /// (file readers check it and report the offending face).
     pub fn new(positions: Vec<Point3<f64>>, faces: Vec<[u32; 3]>) -> Self {

@@ -3,7 +3,7 @@
 //! Camera frame: x right, y down, z forward (OpenCV), mm. Pixel coordinates: integer values are
 //! pixel centres, (0, 0) the centre of the top-left pixel (OpenCV's convention).
 
-use nalgebra::{Point2, Point3, Vector3};
+use nalgebra::{Matrix2, Matrix2x3, Point2, Point3, Vector3};
 
 /// Intrinsics of a camera: image size (pixels), focal lengths and principal point (pixels),
 /// distortion coefficients [k1, k2, p1, p2, k3].
@@ -62,6 +62,32 @@ impl Camera {
         }
         let (xd, yd) = self.distort(p.x / p.z, p.y / p.z);
         Some(Point2::new(self.fx * xd + self.cx, self.fy * yd + self.cy))
+    }
+
+    /// [`Self::project`] and its Jacobian ∂(u, v)/∂p (pixels per mm, camera frame).
+    pub fn project_jacobian(&self, p: &Point3<f64>) -> Option<(Point2<f64>, Matrix2x3<f64>)> {
+        if p.z <= 0.0 {
+            return None;
+        }
+        let (x, y) = (p.x / p.z, p.y / p.z);
+        let [k1, k2, p1, p2, k3] = self.dist;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
+        let (xd, yd) = self.distort(x, y);
+        // ∂(xd, yd)/∂(x, y) of OpenCV's model.
+        let d = Matrix2::new(
+            radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x,
+            2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y,
+            2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y,
+            radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x,
+        );
+        let jn = Matrix2x3::new(1.0 / p.z, 0.0, -x / p.z, 0.0, 1.0 / p.z, -y / p.z);
+        let j = Matrix2::new(self.fx, 0.0, 0.0, self.fy) * d * jn;
+        Some((
+            Point2::new(self.fx * xd + self.cx, self.fy * yd + self.cy),
+            j,
+        ))
     }
 
     /// Unit direction (camera frame) of the ray through pixel coordinates (u, v).

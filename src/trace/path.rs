@@ -23,6 +23,8 @@ pub struct SurfaceHit {
     pub geometric_normal: Vector3<f64>,
     /// Unit outward normal used for refraction (interpolated, or the geometric one).
     pub shading_normal: Vector3<f64>,
+    /// Index of the surface element hit (the triangle of a mesh).
+    pub prim: u32,
 }
 
 /// A closed, outward-oriented surface that rays can be traced against.
@@ -54,20 +56,49 @@ pub struct MeshSurface {
 impl MeshSurface {
     /// `mesh` must be closed and outward-oriented (see [`crate::mesh::validate`]).
     pub fn new(mesh: &TriMesh, normals: NormalModel) -> Result<Self, TraceError> {
+        Self::with_mode(mesh, normals, BuildMode::Static)
+    }
+
+    /// As [`Self::new`] with a chosen BVH mode ([`BuildMode::Refit`] for a mesh that moves).
+    pub fn with_mode(
+        mesh: &TriMesh,
+        normals: NormalModel,
+        mode: BuildMode,
+    ) -> Result<Self, TraceError> {
         let device = Device::new()?;
-        let scene = Scene::new(&device, mesh, BuildMode::Static)?;
+        let scene = Scene::new(&device, mesh, mode)?;
         let vertex_normals = (normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
-        // Embree works in f32: a restarting ray must clear the float error of the surface, which
-        // scales with the coordinates' magnitude, and stay well below any real thickness.
-        let (lo, hi) = mesh.bbox().expect("a mesh with vertices");
-        let extent = (hi - lo).norm().max(lo.coords.amax()).max(hi.coords.amax());
         Ok(Self {
             scene,
             mesh: mesh.clone(),
             vertex_normals,
-            offset: 1e-6 * extent,
+            offset: restart_offset(mesh),
         })
     }
+
+    /// Moves the vertices (same topology); the scene is refitted or rebuilt per its mode.
+    pub fn update_positions(&mut self, positions: &[Point3<f64>]) -> Result<(), TraceError> {
+        self.scene.update_vertices(positions)?;
+        self.mesh.positions.copy_from_slice(positions);
+        if self.vertex_normals.is_some() {
+            self.vertex_normals = Some(self.mesh.vertex_normals());
+        }
+        self.offset = restart_offset(&self.mesh);
+        Ok(())
+    }
+
+    /// The mesh as currently placed.
+    pub fn mesh(&self) -> &TriMesh {
+        &self.mesh
+    }
+}
+
+/// Embree works in f32: a restarting ray must clear the float error of the surface, which scales
+/// with the coordinates' magnitude, and stay well below any real thickness.
+fn restart_offset(mesh: &TriMesh) -> f64 {
+    let (lo, hi) = mesh.bbox().expect("a mesh with vertices");
+    let extent = (hi - lo).norm().max(lo.coords.amax()).max(hi.coords.amax());
+    1e-6 * extent
 }
 
 impl Surface for MeshSurface {
@@ -92,6 +123,7 @@ impl Surface for MeshSurface {
                     point,
                     geometric_normal,
                     shading_normal,
+                    prim: h.prim,
                 }
             });
         }
@@ -150,11 +182,49 @@ pub struct Path {
     pub transmittance: f64,
 }
 
+/// Most interfaces a [`Trail`] records.
+pub const MAX_TRAIL: usize = 8;
+
+/// The surface elements a path refracted at, in order (the first `len` of `prims`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Trail {
+    pub prims: [u32; MAX_TRAIL],
+    pub len: u8,
+}
+
+impl Trail {
+    pub fn prims(&self) -> &[u32] {
+        &self.prims[..self.len as usize]
+    }
+}
+
 /// Traces `rays` (unit directions) through `surface`.
 pub fn trace_paths(
     surface: &dyn Surface,
     rays: &[Ray],
     settings: &PathSettings,
+) -> Result<Vec<Path>, TraceError> {
+    trace(surface, rays, settings, None)
+}
+
+/// As [`trace_paths`], also recording which elements each path refracted at;
+/// `settings.max_refractions` must not exceed [`MAX_TRAIL`].
+pub fn trace_trails(
+    surface: &dyn Surface,
+    rays: &[Ray],
+    settings: &PathSettings,
+) -> Result<(Vec<Path>, Vec<Trail>), TraceError> {
+    assert!(settings.max_refractions as usize <= MAX_TRAIL);
+    let mut trails = vec![Trail::default(); rays.len()];
+    let paths = trace(surface, rays, settings, Some(&mut trails))?;
+    Ok((paths, trails))
+}
+
+fn trace(
+    surface: &dyn Surface,
+    rays: &[Ray],
+    settings: &PathSettings,
+    mut trails: Option<&mut [Trail]>,
 ) -> Result<Vec<Path>, TraceError> {
     let mut paths: Vec<Path> = rays
         .iter()
@@ -190,8 +260,15 @@ pub fn trace_paths(
             .map(|(&i, hit)| hit.map(|h| step(&paths[i], &h, settings, offset)))
             .collect();
         let mut next = Vec::with_capacity(active.len());
-        for (&i, s) in active.iter().zip(steps) {
+        for ((&i, s), h) in active.iter().zip(steps).zip(&hits) {
             if let Some(p) = s {
+                if let (Some(t), Some(h)) = (trails.as_deref_mut(), h) {
+                    if p.refractions > paths[i].refractions {
+                        let t = &mut t[i];
+                        t.prims[t.len as usize] = h.prim;
+                        t.len += 1;
+                    }
+                }
                 paths[i] = p;
                 if p.end == PathEnd::Left {
                     next.push(i);
@@ -234,7 +311,9 @@ fn step(p: &Path, h: &SurfaceHit, s: &PathSettings, offset: f64) -> Path {
             Path {
                 end: PathEnd::Left,
                 refractions: p.refractions + 1,
-                origin: h.point + dir * offset,
+                // Along the ray, far enough to be `offset` off the surface's plane even when the
+                // ray leaves it at a grazing angle (the origin stays on the exact path).
+                origin: h.point + dir * (offset / dir.dot(&h.geometric_normal).abs().max(1e-3)),
                 dir,
                 transmittance: p.transmittance * r.transmittance,
             }

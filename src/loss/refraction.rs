@@ -1,0 +1,330 @@
+//! The refraction term (DESIGN §4): for each object pixel with a decoded monitor point Q, the
+//! modelled path through the current mesh should reach Q.
+//!
+//! Per view, Embree traces every pixel ray through the mesh in batches, recording the triangles
+//! it refracts at ([`trace_trails`]). Then, per pixel and in parallel, the path is recomputed in
+//! f64 from those triangles (ray–plane hits, normals, Snell) and differentiated backwards by hand
+//! ([`super::diff`]), into per-thread gradient buffers that are summed at the end. Pixels whose
+//! modelled path cannot be compared (no hit, TIR, wrong number of refractions, missing the
+//! monitor, a derivative that is unbounded or not finite) are dropped and counted by reason.
+
+use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::diff::{
+    barycentric, barycentric_adjoint, normalize_adjoint, plane_hit, plane_hit_adjoint, snell,
+    snell_adjoint, PlaneHit, Snell, SnellFailure,
+};
+use super::{Accumulator, Drops, Robust};
+use crate::trace::path::{trace_trails, MeshSurface, NormalModel, PathEnd, PathSettings};
+use crate::trace::{Ray, TraceError};
+
+type V3 = Vector3<f64>;
+
+/// What the refraction residual compares.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ResidualForm {
+    /// The paper's ‖Q − Q′‖² with Q′ where the exit ray meets the monitor plane (mm²).
+    Screen,
+    /// DRT's code: ‖d_out − normalize(Q − p_out)‖² with the exit point p_out held fixed
+    /// (unitless).
+    Direction,
+}
+
+/// Settings of the refraction term.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RefractionSettings {
+    /// Refractive index of the object and of the air.
+    pub ior: f64,
+    pub ior_air: f64,
+    /// Paths with 2, 4, … up to this many refractions are used (2: DRT's exactly-two rule).
+    pub max_refractions: u32,
+    pub normals: NormalModel,
+    pub form: ResidualForm,
+    pub robust: Robust,
+}
+
+/// One object pixel of a view: its camera ray (world frame, unit direction), the decoded monitor
+/// point Q (world frame, mm) and its weight.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelTarget {
+    pub dir: V3,
+    pub target: Point3<f64>,
+    pub weight: f64,
+}
+
+/// The refraction data of one view, world frame.
+#[derive(Clone, Debug)]
+pub struct ViewTargets {
+    pub view: usize,
+    /// Camera centre, mm.
+    pub eye: Point3<f64>,
+    /// A point of the monitor plane and its unit normal.
+    pub monitor_point: Point3<f64>,
+    pub monitor_normal: V3,
+    pub pixels: Vec<PixelTarget>,
+}
+
+/// The path of one pixel recomputed in f64, with what its derivative needs.
+struct Interface {
+    tri: [Point3<f64>; 3],
+    verts: [u32; 3],
+    dir_in: V3,
+    hit: PlaneHit,
+    entering: bool,
+    /// Vertex-normal model: barycentrics, the interpolated (unnormalised) normal's length and
+    /// the three vertex normals.
+    bary: (f64, f64),
+    interp_norm: f64,
+    vnormals: [V3; 3],
+    /// Unit normal facing the incident side.
+    n: V3,
+    snell: Snell,
+    /// |snell.out| before normalisation.
+    out_norm: f64,
+}
+
+/// Why a pixel was dropped from the refraction term.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DropReason {
+    NoHit,
+    TotalInternalReflection,
+    /// A path with a refraction count the settings exclude (odd, or above `max_refractions`).
+    RefractionCount,
+    MissedMonitor,
+    /// Ray parallel to a triangle, or a shading normal facing away.
+    Grazing,
+    /// Within reach of the critical angle: the derivative is unbounded.
+    NearCritical,
+    NonFinite,
+}
+
+/// Loss of one pixel and its gradient, recorded into `grad` (vertex, ∂L/∂position) and
+/// `ngrad` (vertex, ∂L/∂unit vertex normal).
+pub struct PixelGradient {
+    pub loss: f64,
+    pub grad: Vec<(u32, V3)>,
+    pub ngrad: Vec<(u32, V3)>,
+}
+
+/// Everything the per-pixel computation reads about the current mesh.
+pub struct MeshState<'a> {
+    pub positions: &'a [Point3<f64>],
+    pub faces: &'a [[u32; 3]],
+    /// Unit vertex normals (vertex-normal model only).
+    pub vertex_normals: Option<&'a [V3]>,
+}
+
+/// Recomputes pixel `px`'s path along `prims` and returns its loss and gradient.
+pub fn pixel_gradient(
+    mesh: &MeshState,
+    s: &RefractionSettings,
+    view: &ViewTargets,
+    px: &PixelTarget,
+    prims: &[u32],
+) -> Result<PixelGradient, DropReason> {
+    // Forward.
+    let mut chain: Vec<Interface> = Vec::with_capacity(prims.len());
+    let (mut o, mut d) = (view.eye, px.dir);
+    for &prim in prims {
+        let verts = mesh.faces[prim as usize];
+        let tri = verts.map(|v| mesh.positions[v as usize]);
+        let hit = plane_hit(&o, &d, &tri).ok_or(DropReason::Grazing)?;
+        let entering = hit.den < 0.0;
+        let (eta, sign) = if entering {
+            (s.ior_air / s.ior, 1.0)
+        } else {
+            (s.ior / s.ior_air, -1.0)
+        };
+        let (mut bary, mut interp_norm, mut vnormals) = ((0.0, 0.0), 0.0, [V3::zeros(); 3]);
+        let outward = match mesh.vertex_normals {
+            None => hit.n / hit.n.norm(),
+            Some(vn) => {
+                bary = barycentric(&hit.point, &tri, &hit.n);
+                vnormals = verts.map(|v| vn[v as usize]);
+                let m = vnormals[0] * (1.0 - bary.0 - bary.1)
+                    + vnormals[1] * bary.0
+                    + vnormals[2] * bary.1;
+                interp_norm = m.norm();
+                m / interp_norm
+            }
+        };
+        let n = outward * sign;
+        let sn = snell(&d, &n, eta).map_err(|e| match e {
+            SnellFailure::Grazing => DropReason::Grazing,
+            SnellFailure::Critical => DropReason::NearCritical,
+        })?;
+        let out_norm = sn.out.norm();
+        let next = sn.out / out_norm;
+        chain.push(Interface {
+            tri,
+            verts,
+            dir_in: d,
+            hit,
+            entering,
+            bary,
+            interp_norm,
+            vnormals,
+            n,
+            snell: sn,
+            out_norm,
+        });
+        o = hit.point;
+        d = next;
+    }
+    // Residual at the exit ray (o, d).
+    let (mut gp, mut gd) = (V3::zeros(), V3::zeros());
+    let loss = match s.form {
+        ResidualForm::Screen => {
+            let dn = d.dot(&view.monitor_normal);
+            let sdist = (view.monitor_point - o).dot(&view.monitor_normal) / dn;
+            if !(sdist > 0.0 && sdist.is_finite()) {
+                return Err(DropReason::MissedMonitor);
+            }
+            let r = o + d * sdist - px.target;
+            let (loss, dr2) = s.robust.apply(r.norm_squared());
+            let gq = r * (2.0 * dr2 * px.weight);
+            // Q′ = o + s d, s = ((m − o)·ν)/(d·ν).
+            gp += gq;
+            gd += gq * sdist;
+            let gs = gq.dot(&d);
+            gp -= view.monitor_normal * (gs / dn);
+            gd -= view.monitor_normal * (gs * sdist / dn);
+            loss * px.weight
+        }
+        ResidualForm::Direction => {
+            let u = (px.target - o).normalize();
+            let r = d - u;
+            let (loss, dr2) = s.robust.apply(r.norm_squared());
+            gd += r * (2.0 * dr2 * px.weight);
+            loss * px.weight
+        }
+    };
+    // Backward through the interfaces.
+    let mut grad = Vec::with_capacity(3 * chain.len());
+    let mut ngrad = Vec::new();
+    for it in chain.iter().rev() {
+        // d_next = out / |out|.
+        let gout = normalize_adjoint(&(it.snell.out / it.out_norm), it.out_norm, &gd);
+        let (mut gdin, mut gn) = (V3::zeros(), V3::zeros());
+        snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
+        let g_outward = if it.entering { gn } else { -gn };
+        let mut gtri = [V3::zeros(); 3];
+        let mut gnormal = V3::zeros();
+        let mut gpoint = gp;
+        match mesh.vertex_normals {
+            None => {
+                gnormal +=
+                    normalize_adjoint(&(it.hit.n / it.hit.n.norm()), it.hit.n.norm(), &g_outward);
+            }
+            Some(_) => {
+                let (w1, w2) = it.bary;
+                let w = [1.0 - w1 - w2, w1, w2];
+                let m_unit = if it.entering { it.n } else { -it.n };
+                let gm = normalize_adjoint(&m_unit, it.interp_norm, &g_outward);
+                ngrad.extend(it.verts.iter().zip(w).map(|(&v, wk)| (v, gm * wk)));
+                let gw: [f64; 3] = std::array::from_fn(|k| gm.dot(&it.vnormals[k]));
+                barycentric_adjoint(
+                    &it.hit.point,
+                    &it.tri,
+                    &it.hit.n,
+                    (w1, w2),
+                    (gw[1] - gw[0], gw[2] - gw[0]),
+                    &mut gpoint,
+                    &mut gtri,
+                    &mut gnormal,
+                );
+            }
+        }
+        let mut go = V3::zeros();
+        plane_hit_adjoint(
+            &it.hit, &it.dir_in, &it.tri, &gpoint, &gnormal, &mut go, &mut gdin, &mut gtri,
+        );
+        grad.extend(it.verts.into_iter().zip(gtri));
+        gp = go;
+        gd = gdin;
+    }
+    let finite = loss.is_finite()
+        && grad
+            .iter()
+            .chain(&ngrad)
+            .all(|(_, g)| g.iter().all(|x| x.is_finite()));
+    if !finite {
+        return Err(DropReason::NonFinite);
+    }
+    Ok(PixelGradient { loss, grad, ngrad })
+}
+
+/// Traces one view through `surface` and adds its refraction loss and gradient to `acc`.
+pub fn add_view(
+    surface: &MeshSurface,
+    vertex_normals: Option<&[V3]>,
+    s: &RefractionSettings,
+    view: &ViewTargets,
+    acc: &mut Accumulator,
+) -> Result<(), TraceError> {
+    let rays: Vec<Ray> = view
+        .pixels
+        .iter()
+        .map(|p| Ray::new(view.eye, p.dir))
+        .collect();
+    let settings = PathSettings {
+        ior: s.ior,
+        ior_air: s.ior_air,
+        max_refractions: s.max_refractions,
+    };
+    let (paths, trails) = trace_trails(surface, &rays, &settings)?;
+    let mesh = MeshState {
+        positions: &surface.mesh().positions,
+        faces: &surface.mesh().faces,
+        vertex_normals,
+    };
+    let nv = mesh.positions.len();
+    let with_normals = vertex_normals.is_some();
+    let part = (0..view.pixels.len())
+        .into_par_iter()
+        .with_min_len(2048)
+        .fold(
+            || Accumulator::new(nv, with_normals),
+            |mut a, i| {
+                match classify(&paths[i].end, paths[i].refractions, s.max_refractions).and_then(
+                    |()| pixel_gradient(&mesh, s, view, &view.pixels[i], trails[i].prims()),
+                ) {
+                    Ok(g) => a.add_pixel(&g),
+                    Err(r) => a.drops.count(r),
+                }
+                a
+            },
+        )
+        .reduce(|| Accumulator::new(nv, with_normals), Accumulator::merge);
+    acc.merge_from(part);
+    Ok(())
+}
+
+/// Whether a traced path is one the term compares.
+fn classify(end: &PathEnd, refractions: u32, max: u32) -> Result<(), DropReason> {
+    match end {
+        PathEnd::Left if refractions == 0 => Err(DropReason::NoHit),
+        PathEnd::Left if refractions.is_multiple_of(2) && refractions <= max => Ok(()),
+        PathEnd::Left | PathEnd::TooManyInterfaces => Err(DropReason::RefractionCount),
+        PathEnd::TotalInternalReflection => Err(DropReason::TotalInternalReflection),
+        PathEnd::GrazingNormal => Err(DropReason::Grazing),
+    }
+}
+
+impl Drops {
+    pub fn count(&mut self, r: DropReason) {
+        match r {
+            DropReason::NoHit => self.no_hit += 1,
+            DropReason::TotalInternalReflection => self.total_internal_reflection += 1,
+            DropReason::RefractionCount => self.refraction_count += 1,
+            DropReason::MissedMonitor => self.missed_monitor += 1,
+            DropReason::Grazing => self.grazing += 1,
+            DropReason::NearCritical => self.near_critical += 1,
+            DropReason::NonFinite => self.non_finite += 1,
+        }
+    }
+}

@@ -1,0 +1,640 @@
+//! The hand-written gradients against central finite differences (f64), on random
+//! configurations and at the extremes DESIGN §5 lists; exclusion of non-differentiable rays; and
+//! the consistency of the refraction loss with the simulator on the true shape.
+
+#![allow(clippy::needless_range_loop)]
+
+use glasscan::hull::silhouette::Silhouette;
+use glasscan::loss::refraction::{
+    add_view, pixel_gradient, MeshState, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
+};
+use glasscan::loss::silhouette::{contour_edges, edge_gradient, SilhouetteForm};
+use glasscan::loss::smoothness::{add_smoothness, Smoothness};
+use glasscan::loss::{Accumulator, DropReason, Robust};
+use glasscan::mesh::shapes::{ellipsoid, icosphere, perturb_radially};
+use glasscan::mesh::TriMesh;
+use glasscan::rig::{Camera, Turntable};
+use glasscan::trace::path::{trace_trails, MeshSurface, NormalModel, PathEnd, PathSettings};
+use glasscan::trace::refract::IOR_AIR;
+use glasscan::trace::{BuildMode, Device, Ray, Scene};
+use nalgebra::{Point3, Vector3};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+type V3 = Vector3<f64>;
+
+/// A slab of two triangulated patches: the top one (outward +z) at z ≈ 0, the bottom one
+/// (outward −z) at z ≈ −thickness, cells `sx` × `sy`, heights from `top` and `bottom`.
+fn slab(
+    n: usize,
+    (sx, sy): (f64, f64),
+    top: impl Fn(f64, f64) -> f64,
+    bottom: impl Fn(f64, f64) -> f64,
+) -> TriMesh {
+    let mut positions = Vec::new();
+    let mut faces = Vec::new();
+    for (surface, up) in [(&top as &dyn Fn(f64, f64) -> f64, true), (&bottom, false)] {
+        let base = positions.len() as u32;
+        for j in 0..n {
+            for i in 0..n {
+                let (x, y) = (
+                    (i as f64 - (n - 1) as f64 / 2.0) * sx,
+                    (j as f64 - (n - 1) as f64 / 2.0) * sy,
+                );
+                positions.push(Point3::new(x, y, surface(x, y)));
+            }
+        }
+        let v = |i: usize, j: usize| base + (j * n + i) as u32;
+        for j in 0..n - 1 {
+            for i in 0..n - 1 {
+                let (a, b, c, d) = (v(i, j), v(i + 1, j), v(i + 1, j + 1), v(i, j + 1));
+                if up {
+                    faces.extend([[a, b, c], [a, c, d]]);
+                } else {
+                    faces.extend([[a, c, b], [a, d, c]]);
+                }
+            }
+        }
+    }
+    TriMesh::new(positions, faces)
+}
+
+struct Case {
+    mesh: TriMesh,
+    s: RefractionSettings,
+    view: ViewTargets,
+    px: PixelTarget,
+    prims: Vec<u32>,
+}
+
+fn settings(
+    ior: f64,
+    normals: NormalModel,
+    form: ResidualForm,
+    robust: Robust,
+) -> RefractionSettings {
+    RefractionSettings {
+        ior,
+        ior_air: IOR_AIR,
+        max_refractions: 8,
+        normals,
+        form,
+        robust,
+    }
+}
+
+/// Traces the ray (eye, dir) through `mesh` and builds a case with a target near where it lands
+/// on the plane z = `monitor_z` (screen form), or far along a direction near its exit direction
+/// (direction form: the target's direction from the exit point is then fixed to 1e-12).
+fn case(
+    mesh: TriMesh,
+    s: RefractionSettings,
+    eye: Point3<f64>,
+    dir: V3,
+    monitor_z: f64,
+    seed: u64,
+) -> Case {
+    let surface = MeshSurface::new(&mesh, s.normals).unwrap();
+    let ps = PathSettings {
+        ior: s.ior,
+        ior_air: s.ior_air,
+        max_refractions: 8,
+    };
+    let (paths, trails) = trace_trails(&surface, &[Ray::new(eye, dir)], &ps).unwrap();
+    assert_eq!(
+        paths[0].end,
+        PathEnd::Left,
+        "the test ray must pass: {:?}",
+        paths[0]
+    );
+    assert!(paths[0].refractions >= 1);
+    let (o, d) = (paths[0].origin, paths[0].dir);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let scale = mesh.bbox_diagonal();
+    let jitter = V3::new(
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+    );
+    let target = match s.form {
+        ResidualForm::Screen => {
+            let t = (monitor_z - o.z) / d.z;
+            let q = o + d * t + jitter * 0.05 * scale;
+            Point3::new(q.x, q.y, monitor_z)
+        }
+        ResidualForm::Direction => o + (d + jitter * 0.05).normalize() * 1e9 * scale.max(1.0),
+    };
+    Case {
+        s,
+        view: ViewTargets {
+            view: 0,
+            eye,
+            monitor_point: Point3::new(0.0, 0.0, monitor_z),
+            monitor_normal: V3::z(),
+            pixels: vec![],
+        },
+        px: PixelTarget {
+            dir,
+            target,
+            weight: 0.7,
+        },
+        prims: trails[0].prims().to_vec(),
+        mesh,
+    }
+}
+
+fn state<'a>(mesh: &'a TriMesh, normals: &'a Option<Vec<V3>>) -> MeshState<'a> {
+    MeshState {
+        positions: &mesh.positions,
+        faces: &mesh.faces,
+        vertex_normals: normals.as_deref(),
+    }
+}
+
+fn loss(c: &Case, mesh: &TriMesh) -> Result<f64, DropReason> {
+    let vn = (c.s.normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
+    pixel_gradient(&state(mesh, &vn), &c.s, &c.view, &c.px, &c.prims).map(|g| g.loss)
+}
+
+fn analytic(c: &Case) -> Vec<V3> {
+    let vn = (c.s.normals == NormalModel::Vertex).then(|| c.mesh.vertex_normals());
+    let g = pixel_gradient(&state(&c.mesh, &vn), &c.s, &c.view, &c.px, &c.prims).unwrap();
+    let mut acc = Accumulator::new(c.mesh.positions.len(), vn.is_some());
+    acc.add_pixel(&g);
+    acc.finish(&c.mesh)
+}
+
+/// Central differences with step `h` (mm) on every coordinate of every vertex; the largest
+/// deviation relative to the gradient's largest component.
+fn fd_check(c: &Case, h: f64, label: &str) {
+    let g = analytic(c);
+    let gmax = g.iter().map(|v| v.amax()).fold(0.0, f64::max);
+    assert!(gmax > 0.0 && gmax.is_finite(), "{label}: gradient {gmax}");
+    let mut worst = 0.0f64;
+    for v in 0..c.mesh.positions.len() {
+        for a in 0..3 {
+            let mut m = c.mesh.clone();
+            m.positions[v][a] += h;
+            let lp = loss(c, &m).unwrap();
+            m.positions[v][a] -= 2.0 * h;
+            let lm = loss(c, &m).unwrap();
+            let fd = (lp - lm) / (2.0 * h);
+            let err = (fd - g[v][a]).abs();
+            if err > 1e-9 {
+                worst = worst.max(err / gmax);
+            }
+        }
+    }
+    assert!(
+        worst <= 1e-5,
+        "{label}: finite differences deviate by {worst:.2e} of the largest component ({gmax:.3e})"
+    );
+}
+
+fn bumpy(amplitude: f64, seed: u64) -> impl Fn(f64, f64) -> f64 {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (a, b, c) = (
+        rng.random_range(0.5..1.5),
+        rng.random_range(0.5..1.5),
+        rng.random_range(0.0..6.0),
+    );
+    move |x: f64, y: f64| amplitude * ((a * x + c).sin() + (b * y).cos())
+}
+
+#[test]
+fn refraction_gradient_matches_finite_differences_on_random_slabs() {
+    for seed in 0..6u64 {
+        for normals in [NormalModel::Face, NormalModel::Vertex] {
+            for (form, robust) in [
+                (ResidualForm::Screen, Robust::L2),
+                (ResidualForm::Screen, Robust::Huber(0.01)),
+                (ResidualForm::Screen, Robust::Cauchy(0.05)),
+                (ResidualForm::Direction, Robust::L2),
+            ] {
+                let mesh = slab(5, (1.0, 1.0), bumpy(0.15, seed), {
+                    let b = bumpy(0.15, seed + 100);
+                    move |x, y| -1.5 + b(x, y)
+                });
+                let mut rng = ChaCha8Rng::seed_from_u64(seed);
+                let dir = V3::new(
+                    rng.random_range(-0.3..0.3),
+                    rng.random_range(-0.3..0.3),
+                    -1.0,
+                )
+                .normalize();
+                let eye = Point3::new(
+                    rng.random_range(-0.4..0.4),
+                    rng.random_range(-0.4..0.4),
+                    0.0,
+                ) - dir * 5.0;
+                let c = case(
+                    mesh,
+                    settings(1.5, normals, form, robust),
+                    eye,
+                    dir,
+                    -10.0,
+                    seed,
+                );
+                assert_eq!(c.prims.len(), 2);
+                fd_check(
+                    &c,
+                    1e-6,
+                    &format!("seed {seed} {normals:?} {form:?} {robust:?}"),
+                );
+            }
+        }
+    }
+}
+
+/// A flat slab (faces parallel), scaled by `scale`, crossed by a ray at incidence `incidence_deg`.
+fn flat_case(
+    scale: f64,
+    ior: f64,
+    incidence_deg: f64,
+    normals: NormalModel,
+    cells: (f64, f64),
+    offset: (f64, f64),
+) -> Case {
+    let mesh = slab(
+        4,
+        (cells.0 * scale, cells.1 * scale),
+        |_, _| 0.0,
+        move |_, _| -scale,
+    );
+    let th = incidence_deg.to_radians();
+    let dir = V3::new(th.sin() * 0.6, th.sin() * 0.8, -th.cos());
+    let hit = Point3::new(offset.0 * scale, offset.1 * scale, 0.0);
+    let eye = hit - dir * (0.5 * scale);
+    case(
+        mesh,
+        settings(ior, normals, ResidualForm::Screen, Robust::L2),
+        eye,
+        dir,
+        -20.0 * scale,
+        7,
+    )
+}
+
+#[test]
+fn refraction_gradient_at_the_extremes() {
+    for normals in [NormalModel::Face, NormalModel::Vertex] {
+        // Object scales 1 mm and 10 m.
+        for scale in [1.0, 1e4] {
+            let c = flat_case(scale / 3.0, 1.5, 30.0, normals, (1.0, 1.0), (0.13, 0.21));
+            fd_check(&c, 1e-6 * scale, &format!("scale {scale} mm {normals:?}"));
+        }
+        // Refractive indices barely above air, and diamond's.
+        for ior in [1.0001, 2.42] {
+            let c = flat_case(1.0, ior, 40.0, normals, (1.0, 1.0), (0.13, 0.21));
+            fd_check(&c, 1e-6, &format!("ior {ior} {normals:?}"));
+        }
+        // Grazing incidence: 86° in, and (parallel faces) 86° out.
+        let c = flat_case(1.0, 1.5, 86.0, normals, (1.0, 1.0), (0.13, 0.21));
+        fd_check(&c, 1e-7, &format!("grazing {normals:?}"));
+        // Sliver triangles (aspect ratio 1e3).
+        let c = flat_case(1.0, 1.5, 25.0, normals, (1e-3, 1.0), (1.3e-4, 0.21));
+        fd_check(&c, 1e-9, &format!("sliver {normals:?}"));
+        // A ray passing 1e-7 mm from the diagonal edge of a cell (x = y in cell coordinates,
+        // cells centred at 0.5 + k).
+        let c = flat_case(1.0, 1.5, 20.0, normals, (1.0, 1.0), (0.1, 0.1 + 1e-7));
+        fd_check(&c, 1e-9, &format!("near an edge {normals:?}"));
+    }
+}
+
+/// A ray inside the object meets a face tilted so that its incidence is `theta` (radians).
+fn exit_case(theta: f64, ior: f64) -> (TriMesh, RefractionSettings, Point3<f64>, V3) {
+    let (s, c) = theta.sin_cos();
+    // Bottom surface tilted about x by theta: outward normal (0, sin θ, −cos θ).
+    let mesh = slab(4, (1.0, 1.0), |_, _| 1.0, move |_, y| -1.0 - y * s / c);
+    let st = settings(ior, NormalModel::Face, ResidualForm::Screen, Robust::L2);
+    (mesh, st, Point3::new(0.1, 0.1, 0.0), -V3::z())
+}
+
+#[test]
+fn near_the_critical_angle_the_gradient_holds_and_beyond_it_the_ray_is_dropped() {
+    let ior = 1.5;
+    let critical = (IOR_AIR / ior).asin();
+    // Valid side, 1e-6 rad from the critical angle: steps small enough to stay there.
+    let (mesh, s, eye, dir) = exit_case(critical - 1e-6, ior);
+    let c = case(mesh, s, eye, dir, -3.0, 1);
+    assert_eq!(c.prims.len(), 1);
+    fd_check(&c, 1e-10, "1e-6 from critical");
+    // Beyond it: not differentiable (TIR); the tracer ends the path and the gradient refuses it.
+    let (mesh, s, eye, dir) = exit_case(critical + 1e-9, ior);
+    let surface = MeshSurface::new(&mesh, NormalModel::Face).unwrap();
+    let (paths, trails) =
+        trace_trails(&surface, &[Ray::new(eye, dir)], &PathSettings::new(ior, 8)).unwrap();
+    assert_eq!(paths[0].end, PathEnd::TotalInternalReflection);
+    let view = ViewTargets {
+        view: 0,
+        eye,
+        monitor_point: Point3::new(0.0, 0.0, -3.0),
+        monitor_normal: V3::z(),
+        pixels: vec![],
+    };
+    let px = PixelTarget {
+        dir,
+        target: Point3::new(0.0, 0.0, -3.0),
+        weight: 1.0,
+    };
+    assert!(trails[0].prims().is_empty());
+    // The face the ray reflects at, given explicitly.
+    let bottom = (0..mesh.faces.len() as u32)
+        .find(|&f| {
+            mesh.face_cross(f as usize).z < 0.0 && {
+                let [a, b, cc] = mesh.corners(f as usize);
+                let (lo, hi) = (a.x.min(b.x).min(cc.x), a.x.max(b.x).max(cc.x));
+                (lo..=hi).contains(&0.1)
+            }
+        })
+        .unwrap();
+    let none = None;
+    let r = pixel_gradient(&state(&mesh, &none), &s, &view, &px, &[bottom]);
+    assert_eq!(r.err(), Some(DropReason::NearCritical));
+}
+
+#[test]
+fn degenerate_triangles_drop_rays_and_never_reach_a_gradient() {
+    // A zero-area (collinear) face in the path: dropped as grazing, nothing accumulated.
+    let mut mesh = slab(3, (1.0, 1.0), |_, _| 0.0, |_, _| -1.0);
+    mesh.positions.push(Point3::new(0.0, 0.0, 0.0));
+    mesh.positions.push(Point3::new(1.0, 1.0, 0.0));
+    mesh.positions.push(Point3::new(2.0, 2.0, 0.0));
+    let n = mesh.positions.len() as u32;
+    mesh.faces.push([n - 3, n - 2, n - 1]);
+    let degenerate = mesh.faces.len() as u32 - 1;
+    for normals in [NormalModel::Face, NormalModel::Vertex] {
+        let s = settings(1.5, normals, ResidualForm::Screen, Robust::L2);
+        let vn = (normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
+        let view = ViewTargets {
+            view: 0,
+            eye: Point3::new(0.3, 0.2, 2.0),
+            monitor_point: Point3::new(0.0, 0.0, -5.0),
+            monitor_normal: V3::z(),
+            pixels: vec![],
+        };
+        let px = PixelTarget {
+            dir: -V3::z(),
+            target: Point3::new(0.0, 0.0, -5.0),
+            weight: 1.0,
+        };
+        let r = pixel_gradient(&state(&mesh, &vn), &s, &view, &px, &[degenerate, 0]);
+        assert_eq!(r.err(), Some(DropReason::Grazing), "{normals:?}");
+        // The zero-area face's vertices have zero normals; the normal adjoint stays finite.
+        let mut acc = Accumulator::new(mesh.positions.len(), true);
+        acc.normal_grad[n as usize - 1] = V3::new(1.0, 2.0, 3.0);
+        assert!(acc
+            .finish(&mesh)
+            .iter()
+            .all(|g| g.iter().all(|x| x.is_finite())));
+    }
+    // Smoothness over a mesh with a zero-area face: those edges are dropped and counted.
+    let mut sphere = icosphere(5.0, 1);
+    let f0 = sphere.faces[0];
+    sphere.positions[f0[1] as usize] = sphere.positions[f0[0] as usize];
+    let mut acc = Accumulator::new(sphere.positions.len(), false);
+    add_smoothness(
+        &sphere,
+        &sphere.interior_edges(),
+        Smoothness::NegLogOnePlusCos,
+        &mut acc,
+    );
+    assert!(acc.drops.non_finite > 0);
+    assert!(acc.grad.iter().all(|g| g.iter().all(|x| x.is_finite())) && acc.loss.is_finite());
+}
+
+#[test]
+fn smoothness_gradients_match_finite_differences() {
+    let mut mesh = icosphere(3.0, 1);
+    perturb_radially(&mut mesh, 0.4, 5);
+    let edges = mesh.interior_edges();
+    assert_eq!(edges.len(), 3 * mesh.faces.len() / 2);
+    for kind in [
+        Smoothness::NegLogOnePlusCos,
+        Smoothness::LogTwoMinusCos,
+        Smoothness::Annealed { tau: 0.1 },
+    ] {
+        let total = |m: &TriMesh| {
+            let mut acc = Accumulator::new(m.positions.len(), false);
+            add_smoothness(m, &edges, kind, &mut acc);
+            acc
+        };
+        let g = total(&mesh).grad;
+        let gmax = g.iter().map(|v| v.amax()).fold(0.0, f64::max);
+        let h = 1e-6;
+        for v in 0..mesh.positions.len() {
+            for a in 0..3 {
+                let mut m = mesh.clone();
+                m.positions[v][a] += h;
+                let lp = total(&m).loss;
+                m.positions[v][a] -= 2.0 * h;
+                let fd = (lp - total(&m).loss) / (2.0 * h);
+                assert!(
+                    (fd - g[v][a]).abs() <= 1e-5 * gmax + 1e-9,
+                    "{kind:?} vertex {v}: {fd} vs {}",
+                    g[v][a]
+                );
+            }
+        }
+    }
+}
+
+fn ring_camera(w: u32, h: u32, f: f64, dist: [f64; 5]) -> Camera {
+    Camera {
+        width: w,
+        height: h,
+        fx: f,
+        fy: f * 1.01,
+        cx: w as f64 / 2.0 - 0.3,
+        cy: h as f64 / 2.0 + 0.2,
+        dist,
+    }
+}
+
+#[test]
+fn projection_jacobian_matches_finite_differences_with_distortion() {
+    let cam = ring_camera(640, 480, 800.0, [-0.2, 0.1, 0.001, -0.002, 0.01]);
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for _ in 0..50 {
+        let p = Point3::new(
+            rng.random_range(-60.0..60.0),
+            rng.random_range(-40.0..40.0),
+            rng.random_range(300.0..700.0),
+        );
+        let (_, j) = cam.project_jacobian(&p).unwrap();
+        for a in 0..3 {
+            let h = 1e-5;
+            let (mut pp, mut pm) = (p, p);
+            pp[a] += h;
+            pm[a] -= h;
+            let d = (cam.project(&pp).unwrap() - cam.project(&pm).unwrap()) / (2.0 * h);
+            assert!(
+                (d - j.column(a)).norm() <= 1e-6 * j.norm(),
+                "{d} vs {}",
+                j.column(a)
+            );
+        }
+    }
+}
+
+/// A sphere mesh of radius `r` at the origin seen by one ring view, and the silhouette of a
+/// sphere of radius `r_mask`.
+fn silhouette_setup(r: f64, r_mask: f64) -> (TriMesh, Silhouette) {
+    let mut mesh = ellipsoid(V3::repeat(r), 3);
+    perturb_radially(&mut mesh, 0.02 * r, 2);
+    let cam = ring_camera(320, 240, 700.0, [-0.05, 0.01, 0.0, 0.0, 0.0]);
+    let tt = Turntable {
+        axis_point: Point3::new(0.0, 0.0, 400.0),
+        axis_dir: -V3::y_axis(),
+        angles_deg: vec![20.0],
+    };
+    let pose = tt.view_poses().unwrap()[0];
+    let centre = pose * Point3::origin();
+    let mask: Vec<u8> = (0..cam.width * cam.height)
+        .map(|i| {
+            let d = cam
+                .pixel_ray((i % cam.width) as f64, (i / cam.width) as f64)
+                .unwrap();
+            let along = centre.coords.dot(&d);
+            ((centre.coords - along * d).norm() < r_mask) as u8 * 255
+        })
+        .collect();
+    (mesh, Silhouette::from_mask(0, &mask, &cam, pose).unwrap())
+}
+
+#[test]
+fn silhouette_gradient_matches_finite_differences_and_drt_points_the_same_way() {
+    let (mesh, sil) = silhouette_setup(30.0, 32.0);
+    let scene = Scene::new(&Device::new().unwrap(), &mesh, BuildMode::Static).unwrap();
+    let contour = contour_edges(&mesh, &mesh.interior_edges(), &sil, &scene).unwrap();
+    assert!(contour.len() > 30, "{} contour edges", contour.len());
+    let (mut agree, mut compared) = (0, 0);
+    for e in &contour {
+        let (_, g) = edge_gradient(&mesh, &sil, e, SilhouetteForm::Distance).unwrap();
+        let gmax = g.iter().map(|v| v.amax()).fold(0.0, f64::max);
+        let h = 1e-6;
+        for (k, &v) in e.verts.iter().enumerate() {
+            for a in 0..3 {
+                let mut m = mesh.clone();
+                m.positions[v as usize][a] += h;
+                let lp = edge_gradient(&m, &sil, e, SilhouetteForm::Distance)
+                    .unwrap()
+                    .0;
+                m.positions[v as usize][a] -= 2.0 * h;
+                let lm = edge_gradient(&m, &sil, e, SilhouetteForm::Distance)
+                    .unwrap()
+                    .0;
+                let fd = (lp - lm) / (2.0 * h);
+                assert!(
+                    (fd - g[k][a]).abs() <= 1e-5 * gmax + 1e-9,
+                    "edge {:?}: {fd} vs {}",
+                    e.verts,
+                    g[k][a]
+                );
+            }
+        }
+        let (_, d) = edge_gradient(&mesh, &sil, e, SilhouetteForm::Drt).unwrap();
+        if gmax > 0.0 {
+            compared += 1;
+            agree += ((d[0] + d[1]).dot(&(g[0] + g[1])) > 0.0) as usize;
+        }
+    }
+    // The mesh is 2 mm inside the mask: every contour edge should move outwards.
+    assert!(
+        compared > 30 && agree as f64 >= 0.95 * compared as f64,
+        "{agree}/{compared}"
+    );
+}
+
+#[test]
+fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
+    use glasscan::simulate::render::{trace_view, Outcome, ViewSetup};
+    let mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
+    let cam = ring_camera(160, 120, 300.0, [0.0; 5]);
+    let tt = Turntable {
+        axis_point: Point3::new(0.0, 0.0, 300.0),
+        axis_dir: -V3::y_axis(),
+        angles_deg: vec![0.0, 70.0],
+    };
+    let screen = glasscan::rig::Screen {
+        width_px: 800,
+        height_px: 600,
+        pitch_mm: 0.5,
+        pose: nalgebra::Isometry3::translation(-200.0, -150.0, 500.0),
+    };
+    for normals in [NormalModel::Vertex, NormalModel::Face] {
+        let mut surface = MeshSurface::with_mode(&mesh, normals, BuildMode::Refit).unwrap();
+        let s = RefractionSettings {
+            max_refractions: 4,
+            ..settings(1.5, normals, ResidualForm::Screen, Robust::L2)
+        };
+        // Exact correspondences: the simulator's own pixel-centre paths on the true mesh.
+        let views: Vec<ViewTargets> = tt
+            .view_poses()
+            .unwrap()
+            .into_iter()
+            .enumerate()
+            .map(|(k, pose)| {
+                let setup = ViewSetup {
+                    camera: &cam,
+                    pose,
+                    screen: &screen,
+                    surface: Some(&surface),
+                    bound_centre: Point3::origin(),
+                    bound_radius: 31.0,
+                    settings: PathSettings::new(1.5, 4),
+                    fresnel: false,
+                };
+                let samples = trace_view(&setup, 1).unwrap();
+                let to_world = pose.inverse();
+                let world_screen = screen.transformed(&to_world);
+                ViewTargets {
+                    view: k,
+                    eye: to_world * Point3::origin(),
+                    monitor_point: world_screen.point(0.0, 0.0),
+                    monitor_normal: world_screen.pose * V3::z(),
+                    pixels: samples
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, s)| matches!(s.outcome, Outcome::Monitor(k) if k >= 2))
+                        .map(|(i, smp)| PixelTarget {
+                            dir: to_world
+                                * cam.pixel_ray((i % 160) as f64, (i / 160) as f64).unwrap(),
+                            target: world_screen.point(smp.monitor.x, smp.monitor.y),
+                            weight: 1.0,
+                        })
+                        .collect(),
+                }
+            })
+            .collect();
+        let evaluate = |surface: &MeshSurface| {
+            let vn = (normals == NormalModel::Vertex).then(|| surface.mesh().vertex_normals());
+            let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
+            for v in &views {
+                add_view(surface, vn.as_deref(), &s, v, &mut acc).unwrap();
+            }
+            let (loss, used, drops) = (acc.loss, acc.used, acc.drops);
+            let g = acc.finish(surface.mesh());
+            (
+                loss,
+                used,
+                drops,
+                g.iter().map(|v| v.norm_squared()).sum::<f64>().sqrt(),
+            )
+        };
+        let (loss, used, drops, gnorm) = evaluate(&surface);
+        assert!(used > 2000, "{normals:?}: {used} rays");
+        assert_eq!(drops.non_finite, 0);
+        let per_ray = loss / used as f64;
+        assert!(per_ray <= 1e-10, "{normals:?}: {per_ray:e} mm² per ray");
+        // The gradient, against its size when the mesh is 0.1 % too large.
+        let mut grown = mesh.clone();
+        grown.scale_translate(1.001, V3::zeros());
+        surface.update_positions(&grown.positions).unwrap();
+        let (_, _, _, gnorm_grown) = evaluate(&surface);
+        assert!(
+            gnorm < 1e-4 * gnorm_grown,
+            "{normals:?}: |gradient| {gnorm:e} on the truth, {gnorm_grown:e} 0.1 % off"
+        );
+    }
+}
