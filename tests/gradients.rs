@@ -10,7 +10,7 @@ use glasscan::loss::refraction::{
 };
 use glasscan::loss::silhouette::{contour_edges, edge_gradient, SilhouetteForm};
 use glasscan::loss::smoothness::{add_smoothness, Smoothness};
-use glasscan::loss::{Accumulator, DropReason, Robust};
+use glasscan::loss::{Accumulator, Accumulators, DropReason, Robust};
 use glasscan::mesh::shapes::{ellipsoid, icosphere, perturb_radially};
 use glasscan::mesh::TriMesh;
 use glasscan::rig::{Camera, Turntable};
@@ -392,13 +392,14 @@ fn degenerate_triangles_drop_rays_and_never_reach_a_gradient() {
     let mut sphere = icosphere(5.0, 1);
     let f0 = sphere.faces[0];
     sphere.positions[f0[1] as usize] = sphere.positions[f0[0] as usize];
-    let mut acc = Accumulator::new(sphere.positions.len(), false);
+    let accs = Accumulators::new(sphere.positions.len(), false);
     add_smoothness(
         &sphere,
         &sphere.interior_edges(),
         Smoothness::NegLogOnePlusCos,
-        &mut acc,
+        &accs,
     );
+    let acc = accs.total();
     assert!(acc.drops.non_finite > 0);
     assert!(acc.grad.iter().all(|g| g.iter().all(|x| x.is_finite())) && acc.loss.is_finite());
 }
@@ -415,9 +416,9 @@ fn smoothness_gradients_match_finite_differences() {
         Smoothness::Annealed { tau: 0.1 },
     ] {
         let total = |m: &TriMesh| {
-            let mut acc = Accumulator::new(m.positions.len(), false);
-            add_smoothness(m, &edges, kind, &mut acc);
-            acc
+            let accs = Accumulators::new(m.positions.len(), false);
+            add_smoothness(m, &edges, kind, &accs);
+            accs.total()
         };
         let g = total(&mesh).grad;
         let gmax = g.iter().map(|v| v.amax()).fold(0.0, f64::max);
@@ -609,10 +610,11 @@ fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
             .collect();
         let evaluate = |surface: &MeshSurface| {
             let vn = (normals == NormalModel::Vertex).then(|| surface.mesh().vertex_normals());
-            let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
+            let accs = Accumulators::new(mesh.positions.len(), vn.is_some());
             for v in &views {
-                add_view(surface, vn.as_deref(), &s, v, &mut acc).unwrap();
+                add_view(surface, surface.mesh(), vn.as_deref(), &s, v, &accs).unwrap();
             }
+            let acc = accs.total();
             let (loss, used, drops) = (acc.loss, acc.used, acc.drops);
             let g = acc.finish(surface.mesh());
             (

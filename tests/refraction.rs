@@ -77,7 +77,12 @@ struct Sphere {
 }
 
 impl Surface for Sphere {
-    fn intersect(&self, rays: &[Ray], out: &mut [Option<SurfaceHit>]) -> Result<(), TraceError> {
+    fn intersect_serial(
+        &self,
+        rays: &[Ray],
+        out: &mut [Option<SurfaceHit>],
+        _coherent: bool,
+    ) -> Result<(), TraceError> {
         for (ray, o) in rays.iter().zip(out.iter_mut()) {
             let oc = ray.origin - self.c;
             let b = oc.dot(&ray.dir);

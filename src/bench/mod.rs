@@ -1,4 +1,5 @@
 //! Benchmarks behind `glasscan bench …`: they measure what they name and print ratios.
 
+pub mod gradient;
 pub mod remesh;
 pub mod trace;

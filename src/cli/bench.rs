@@ -15,6 +15,48 @@ pub enum BenchCommand {
     Trace(TraceArgs),
     /// glasscan's remesher against pymeshlab's on the shared meshes and DRT's schedule.
     Remesh(RemeshBenchArgs),
+    /// Loss + gradient of the refraction term over a decoded scan against bare Embree queries.
+    Gradient(GradientArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct GradientArgs {
+    /// A decoded scan folder (e.g. from `glasscan simulate --decoded-only`).
+    #[arg(long)]
+    pub scan: PathBuf,
+    /// The mesh to evaluate (world frame); default: the scan's ground_truth.ply.
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
+    /// Views: all (default), or indices and ranges such as 0-35.
+    #[arg(long)]
+    pub views: Option<String>,
+    /// Normal model of the refraction term.
+    #[arg(long, value_enum, default_value = "face")]
+    pub normals: NormalArg,
+    /// Residual form: screen (mm on the monitor) or direction (DRT's code).
+    #[arg(long, value_enum, default_value = "screen")]
+    pub form: FormArg,
+    /// Paths with up to this many refractions (even) are used.
+    #[arg(long = "max-refractions", default_value_t = 2)]
+    pub max_refractions: u32,
+    /// Timed evaluations (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    pub repeats: usize,
+    /// Also write the figures as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum NormalArg {
+    Face,
+    Vertex,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum FormArg {
+    Screen,
+    Direction,
 }
 
 #[derive(Args, Debug)]
@@ -63,7 +105,97 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace(a) => run_trace(a),
         BenchCommand::Remesh(a) => run_remesh(a),
+        BenchCommand::Gradient(a) => run_gradient(a),
     }
+}
+
+fn run_gradient(a: &GradientArgs) -> Result<()> {
+    use crate::loss::refraction::{RefractionSettings, ResidualForm};
+    use crate::trace::path::NormalModel;
+    if !(2..=crate::trace::path::MAX_TRAIL as u32).contains(&a.max_refractions) {
+        anyhow::bail!(
+            "--max-refractions {}: it must lie in 2..={}",
+            a.max_refractions,
+            crate::trace::path::MAX_TRAIL
+        );
+    }
+    let scan = crate::scan::Scan::open(&a.scan)?;
+    let views = super::decode::parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
+    let mesh_path = a
+        .mesh
+        .clone()
+        .unwrap_or_else(|| a.scan.join("ground_truth.ply"));
+    let mesh = read_mesh(&mesh_path)?;
+    crate::mesh::validate::ensure_valid(&mesh)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", mesh_path.display()))?;
+    let t0 = std::time::Instant::now();
+    let (targets, skipped) = crate::loss::targets::scan_targets(&scan, &views)?;
+    let load_s = t0.elapsed().as_secs_f64();
+    let s = RefractionSettings {
+        ior: scan.config.ior,
+        ior_air: crate::trace::refract::IOR_AIR,
+        max_refractions: a.max_refractions,
+        normals: match a.normals {
+            NormalArg::Face => NormalModel::Face,
+            NormalArg::Vertex => NormalModel::Vertex,
+        },
+        form: match a.form {
+            FormArg::Screen => ResidualForm::Screen,
+            FormArg::Direction => ResidualForm::Direction,
+        },
+        robust: crate::loss::Robust::L2,
+    };
+    eprintln!(
+        "bench gradient: {} ({} faces), {} views of {} ({} left out by decode), targets loaded in {load_s:.1} s",
+        mesh_path.display(),
+        mesh.faces.len(),
+        targets.len(),
+        a.scan.display(),
+        skipped.len()
+    );
+    let bar = indicatif::ProgressBar::new(a.repeats.max(1) as u64).with_style(
+        indicatif::ProgressStyle::with_template("bench gradient [{bar:30}] {pos}/{len} ({eta})")
+            .expect("static template"),
+    );
+    let r = crate::bench::gradient::run(&mesh, &targets, &s, a.repeats, |i| {
+        bar.set_position(i as u64)
+    })?;
+    bar.finish_and_clear();
+    outln!(
+        "{} threads · {} faces · {} views · {:?} normals · {:?} residual · paths with ≤ {} refractions",
+        r.threads, r.faces, r.views, s.normals, s.form, s.max_refractions
+    );
+    outln!(
+        "camera rays {}  Embree queries {}  used {} ({:.1} %)  dropped: no hit {}, TIR {}, refraction count {}, missed monitor {}, grazing {}, near critical {}, non-finite {}",
+        r.camera_rays,
+        r.queries,
+        r.used,
+        100.0 * r.used as f64 / r.camera_rays.max(1) as f64,
+        r.drops.no_hit,
+        r.drops.total_internal_reflection,
+        r.drops.refraction_count,
+        r.drops.missed_monitor,
+        r.drops.grazing,
+        r.drops.near_critical,
+        r.drops.non_finite
+    );
+    outln!(
+        "loss + gradient: {:.3} s per gradient over all views, {:.1} ms per view; {:.2} M camera rays/s, {:.2} M queries/s",
+        r.seconds_per_gradient,
+        1e3 * r.seconds_per_view,
+        r.camera_rays_per_s / 1e6,
+        r.queries_per_s / 1e6
+    );
+    outln!(
+        "Embree alone, same queries: {:.3} s, {:.2} M queries/s",
+        r.seconds_embree_only,
+        r.embree_queries_per_s / 1e6
+    );
+    outln!("ratio loss+gradient / Embree alone: {:.2}", r.ratio);
+    if let Some(path) = &a.json {
+        super::write_json(path, &serde_json::to_value(&r)?)?;
+    }
+    Ok(())
 }
 
 fn run_trace(a: &TraceArgs) -> Result<()> {

@@ -44,6 +44,7 @@ pub struct PlaneHit {
 }
 
 /// The ray–plane hit; `None` when the ray runs parallel to the plane.
+#[inline]
 pub fn plane_hit(o: &Point3<f64>, d: &V3, tri: &[Point3<f64>; 3]) -> Option<PlaneHit> {
     let n = (tri[1] - tri[0]).cross(&(tri[2] - tri[0]));
     let den = d.dot(&n);
@@ -62,6 +63,7 @@ pub fn plane_hit(o: &Point3<f64>, d: &V3, tri: &[Point3<f64>; 3]) -> Option<Plan
 /// Adjoint of [`plane_hit`]: given ∂L/∂point and ∂L/∂n (from the normal's later use), adds
 /// ∂L/∂o, ∂L/∂d and ∂L/∂(a, b, c).
 #[allow(clippy::too_many_arguments)]
+#[inline]
 pub fn plane_hit_adjoint(
     h: &PlaneHit,
     d: &V3,
@@ -85,6 +87,7 @@ pub fn plane_hit_adjoint(
 
 /// Barycentric coordinates (w1, w2) of `p` (in the triangle's plane) for vertices b and c;
 /// w0 = 1 − w1 − w2.
+#[inline]
 pub fn barycentric(p: &Point3<f64>, tri: &[Point3<f64>; 3], n: &V3) -> (f64, f64) {
     let (e1, e2, ep) = (tri[1] - tri[0], tri[2] - tri[0], p - tri[0]);
     let b = n.dot(n);
@@ -94,6 +97,7 @@ pub fn barycentric(p: &Point3<f64>, tri: &[Point3<f64>; 3], n: &V3) -> (f64, f64
 /// Adjoint of [`barycentric`] (n = (b − a) × (c − a) given): adds ∂L/∂p, ∂L/∂(a, b, c) and
 /// ∂L/∂n given ∂L/∂w1, ∂L/∂w2.
 #[allow(clippy::too_many_arguments)]
+#[inline]
 pub fn barycentric_adjoint(
     p: &Point3<f64>,
     tri: &[Point3<f64>; 3],
@@ -141,6 +145,7 @@ pub enum SnellFailure {
 /// passes (cos θt ≈ 1e-3 there).
 pub const MIN_COS_T: f64 = 1e-7;
 
+#[inline]
 pub fn snell(d: &V3, n: &V3, eta: f64) -> Result<Snell, SnellFailure> {
     let cos_i = -d.dot(n);
     if cos_i.is_nan() || cos_i <= 0.0 {

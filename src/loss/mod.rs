@@ -9,9 +9,13 @@ pub mod diff;
 pub mod refraction;
 pub mod silhouette;
 pub mod smoothness;
+pub mod targets;
+
+use std::cell::RefCell;
 
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
+use thread_local::ThreadLocal;
 
 use crate::mesh::TriMesh;
 use diff::{face_cross_adjoint, normalize_adjoint};
@@ -88,6 +92,42 @@ impl Drops {
         self.grazing += o.grazing;
         self.near_critical += o.near_critical;
         self.non_finite += o.non_finite;
+    }
+}
+
+/// One [`Accumulator`] per worker thread, summed at the end: the hot loops add to their own
+/// thread's buffers (no locks, no atomics), and the buffers live across views.
+pub struct Accumulators {
+    vertices: usize,
+    vertex_normals: bool,
+    per_thread: ThreadLocal<RefCell<Accumulator>>,
+}
+
+impl Accumulators {
+    pub fn new(vertices: usize, vertex_normals: bool) -> Self {
+        Self {
+            vertices,
+            vertex_normals,
+            per_thread: ThreadLocal::new(),
+        }
+    }
+
+    /// Runs `f` on the calling thread's accumulator.
+    #[inline]
+    pub fn with<R>(&self, f: impl FnOnce(&mut Accumulator) -> R) -> R {
+        let cell = self
+            .per_thread
+            .get_or(|| RefCell::new(Accumulator::new(self.vertices, self.vertex_normals)));
+        f(&mut cell.borrow_mut())
+    }
+
+    /// The sum over threads.
+    pub fn total(self) -> Accumulator {
+        let (v, n) = (self.vertices, self.vertex_normals);
+        self.per_thread
+            .into_iter()
+            .map(RefCell::into_inner)
+            .fold(Accumulator::new(v, n), Accumulator::merge)
     }
 }
 

@@ -8,6 +8,7 @@
 //! modelled path cannot be compared (no hit, TIR, wrong number of refractions, missing the
 //! monitor, a derivative that is unbounded or not finite) are dropped and counted by reason.
 
+use arrayvec::ArrayVec;
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -16,8 +17,11 @@ use super::diff::{
     barycentric, barycentric_adjoint, normalize_adjoint, plane_hit, plane_hit_adjoint, snell,
     snell_adjoint, PlaneHit, Snell, SnellFailure,
 };
-use super::{Accumulator, Drops, Robust};
-use crate::trace::path::{trace_trails, MeshSurface, NormalModel, PathEnd, PathSettings};
+use super::{Accumulators, Drops, Robust};
+use crate::mesh::TriMesh;
+use crate::trace::path::{
+    trace_chunk, NormalModel, PathEnd, PathSettings, Surface, Trail, MAX_TRAIL, TRACE_CHUNK,
+};
 use crate::trace::{Ray, TraceError};
 
 type V3 = Vector3<f64>;
@@ -106,8 +110,8 @@ pub enum DropReason {
 /// `ngrad` (vertex, ∂L/∂unit vertex normal).
 pub struct PixelGradient {
     pub loss: f64,
-    pub grad: Vec<(u32, V3)>,
-    pub ngrad: Vec<(u32, V3)>,
+    pub grad: ArrayVec<(u32, V3), { 3 * MAX_TRAIL }>,
+    pub ngrad: ArrayVec<(u32, V3), { 3 * MAX_TRAIL }>,
 }
 
 /// Everything the per-pixel computation reads about the current mesh.
@@ -127,7 +131,10 @@ pub fn pixel_gradient(
     prims: &[u32],
 ) -> Result<PixelGradient, DropReason> {
     // Forward.
-    let mut chain: Vec<Interface> = Vec::with_capacity(prims.len());
+    if prims.len() > MAX_TRAIL {
+        return Err(DropReason::RefractionCount);
+    }
+    let mut chain: ArrayVec<Interface, MAX_TRAIL> = ArrayVec::new();
     let (mut o, mut d) = (view.eye, px.dir);
     for &prim in prims {
         let verts = mesh.faces[prim as usize];
@@ -204,8 +211,8 @@ pub fn pixel_gradient(
         }
     };
     // Backward through the interfaces.
-    let mut grad = Vec::with_capacity(3 * chain.len());
-    let mut ngrad = Vec::new();
+    let mut grad = ArrayVec::new();
+    let mut ngrad = ArrayVec::new();
     for it in chain.iter().rev() {
         // d_next = out / |out|.
         let gout = normalize_adjoint(&(it.snell.out / it.out_norm), it.out_norm, &gd);
@@ -258,49 +265,46 @@ pub fn pixel_gradient(
     Ok(PixelGradient { loss, grad, ngrad })
 }
 
-/// Traces one view through `surface` and adds its refraction loss and gradient to `acc`.
+/// Traces one view through `surface` (holding `mesh`; with `vertex_normals` of `mesh` for the
+/// vertex-normal model) and adds its refraction loss and gradient to `accs`.
 pub fn add_view(
-    surface: &MeshSurface,
+    surface: &dyn Surface,
+    mesh: &TriMesh,
     vertex_normals: Option<&[V3]>,
     s: &RefractionSettings,
     view: &ViewTargets,
-    acc: &mut Accumulator,
+    accs: &Accumulators,
 ) -> Result<(), TraceError> {
-    let rays: Vec<Ray> = view
-        .pixels
-        .iter()
-        .map(|p| Ray::new(view.eye, p.dir))
-        .collect();
     let settings = PathSettings {
         ior: s.ior,
         ior_air: s.ior_air,
         max_refractions: s.max_refractions,
     };
-    let (paths, trails) = trace_trails(surface, &rays, &settings)?;
     let mesh = MeshState {
-        positions: &surface.mesh().positions,
-        faces: &surface.mesh().faces,
+        positions: &mesh.positions,
+        faces: &mesh.faces,
         vertex_normals,
     };
-    let nv = mesh.positions.len();
-    let with_normals = vertex_normals.is_some();
-    let part = (0..view.pixels.len())
-        .into_par_iter()
-        .with_min_len(2048)
-        .fold(
-            || Accumulator::new(nv, with_normals),
-            |mut a, i| {
-                match classify(&paths[i].end, paths[i].refractions, s.max_refractions).and_then(
-                    |()| pixel_gradient(&mesh, s, view, &view.pixels[i], trails[i].prims()),
-                ) {
-                    Ok(g) => a.add_pixel(&g),
-                    Err(r) => a.drops.count(r),
+    // Trace and differentiate chunk by chunk, each on one thread, so the chunk's paths stay in
+    // cache between the two.
+    view.pixels
+        .par_chunks(TRACE_CHUNK)
+        .try_for_each(|chunk| -> Result<(), TraceError> {
+            let rays: Vec<Ray> = chunk.iter().map(|p| Ray::new(view.eye, p.dir)).collect();
+            let mut trails = vec![Trail::default(); chunk.len()];
+            let paths = trace_chunk(surface, &rays, &settings, Some(&mut trails))?;
+            accs.with(|a| {
+                for ((px, path), trail) in chunk.iter().zip(&paths).zip(&trails) {
+                    match classify(&path.end, path.refractions, s.max_refractions)
+                        .and_then(|()| pixel_gradient(&mesh, s, view, px, trail.prims()))
+                    {
+                        Ok(g) => a.add_pixel(&g),
+                        Err(r) => a.drops.count(r),
+                    }
                 }
-                a
-            },
-        )
-        .reduce(|| Accumulator::new(nv, with_normals), Accumulator::merge);
-    acc.merge_from(part);
+            });
+            Ok(())
+        })?;
     Ok(())
 }
 

@@ -20,7 +20,7 @@ use nalgebra::{Point3, Vector2, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Accumulator;
+use super::Accumulators;
 use crate::hull::silhouette::Silhouette;
 use crate::mesh::{InteriorEdge, TriMesh};
 use crate::trace::{Ray, Scene, TraceError};
@@ -147,26 +147,27 @@ pub fn edge_gradient(
         .then_some((loss, grads))
 }
 
-/// Adds view `sil`'s silhouette loss and gradient to `acc`.
+/// Adds view `sil`'s silhouette loss and gradient to `accs`.
 pub fn add_view(
     mesh: &TriMesh,
     edges: &[InteriorEdge],
     sil: &Silhouette,
     scene: &Scene,
     form: SilhouetteForm,
-    acc: &mut Accumulator,
+    accs: &Accumulators,
 ) -> Result<(), TraceError> {
     let contour = contour_edges(mesh, edges, sil, scene)?;
-    for e in &contour {
-        match edge_gradient(mesh, sil, e, form) {
+    contour.par_iter().for_each(|e| {
+        let r = edge_gradient(mesh, sil, e, form);
+        accs.with(|a| match r {
             Some((loss, g)) => {
-                acc.loss += loss;
-                acc.used += 1;
-                acc.grad[e.verts[0] as usize] += g[0];
-                acc.grad[e.verts[1] as usize] += g[1];
+                a.loss += loss;
+                a.used += 1;
+                a.grad[e.verts[0] as usize] += g[0];
+                a.grad[e.verts[1] as usize] += g[1];
             }
-            None => acc.drops.non_finite += 1,
-        }
-    }
+            None => a.drops.non_finite += 1,
+        });
+    });
     Ok(())
 }

@@ -6,7 +6,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::diff::{face_cross_adjoint, normalize_adjoint};
-use super::{Accumulator, DropReason};
+use super::{Accumulators, DropReason};
 use crate::mesh::{InteriorEdge, TriMesh};
 
 type V3 = Vector3<f64>;
@@ -38,37 +38,28 @@ impl Smoothness {
     }
 }
 
-/// Adds Σ ψ(cos θ) over `edges` (from [`TriMesh::interior_edges`]) and its gradient to `acc`.
+/// Adds Σ ψ(cos θ) over `edges` (from [`TriMesh::interior_edges`]) and its gradient to `accs`.
 /// Edges with a zero-area face or a non-finite value are dropped and counted.
 pub fn add_smoothness(
     mesh: &TriMesh,
     edges: &[InteriorEdge],
     kind: Smoothness,
-    acc: &mut Accumulator,
+    accs: &Accumulators,
 ) {
-    let nv = mesh.positions.len();
-    let part = edges
-        .par_iter()
-        .with_min_len(4096)
-        .fold(
-            || Accumulator::new(nv, false),
-            |mut a, e| {
-                let [f, g] = e.faces;
-                match pair_gradient(mesh, f as usize, g as usize, kind) {
-                    Ok((loss, grads)) => {
-                        a.loss += loss;
-                        a.used += 1;
-                        for (v, x) in grads {
-                            a.grad[v as usize] += x;
-                        }
-                    }
-                    Err(r) => a.drops.count(r),
+    edges.par_iter().with_min_len(4096).for_each(|e| {
+        let [f, g] = e.faces;
+        let r = pair_gradient(mesh, f as usize, g as usize, kind);
+        accs.with(|a| match r {
+            Ok((loss, grads)) => {
+                a.loss += loss;
+                a.used += 1;
+                for (v, x) in grads {
+                    a.grad[v as usize] += x;
                 }
-                a
-            },
-        )
-        .reduce(|| Accumulator::new(nv, false), Accumulator::merge);
-    acc.merge_from(part);
+            }
+            Err(r) => a.drops.count(r),
+        });
+    });
 }
 
 /// ψ of one edge and the gradient on the vertices of its two faces.

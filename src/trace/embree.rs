@@ -268,6 +268,28 @@ impl Scene {
         Ok(())
     }
 
+    /// Embree's bare closest-hit queries for `rays` on the calling thread (packets of 8 if
+    /// `coherent`), with nothing done with the hits but counting them: the yardstick of
+    /// `bench gradient`.
+    pub fn count_hits_serial(&self, rays: &[Ray], coherent: bool) -> Result<usize, TraceError> {
+        let raw_rays: Vec<ffi::gs_ray> = rays.iter().map(Ray::raw).collect();
+        let mut hits = vec![ffi::gs_hit::default(); rays.len()];
+        // SAFETY: both buffers hold rays.len() elements; the scene is committed.
+        let status = unsafe {
+            ffi::gs_intersect(
+                self.raw,
+                raw_rays.as_ptr(),
+                hits.as_mut_ptr(),
+                rays.len(),
+                coherent as i32,
+            )
+        };
+        if status != 0 {
+            return Err(last_error("Embree: ray query failed"));
+        }
+        Ok(hits.iter().filter(|h| h.prim != ffi::GS_INVALID_ID).count())
+    }
+
     /// Embree picks the triangle (in f32); the hit's `t` and barycentrics are recomputed here in
     /// f64 on that triangle (Möller–Trumbore), so they do not carry Embree's float error, which
     /// grows as 1/cos at grazing incidence.

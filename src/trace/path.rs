@@ -11,7 +11,7 @@ use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
 use super::refract::{refract, IOR_AIR};
-use super::{BuildMode, Device, Ray, Scene, TraceError};
+use super::{BuildMode, Device, Hit, Ray, Scene, TraceError};
 use crate::mesh::TriMesh;
 
 /// Where a ray meets a surface.
@@ -29,8 +29,14 @@ pub struct SurfaceHit {
 
 /// A closed, outward-oriented surface that rays can be traced against.
 pub trait Surface: Sync {
-    /// The first hit of each ray (`out` is as long as `rays`).
-    fn intersect(&self, rays: &[Ray], out: &mut [Option<SurfaceHit>]) -> Result<(), TraceError>;
+    /// The first hit of each ray (`out` is as long as `rays`) on the calling thread; `coherent`:
+    /// the rays come in image order from one point (camera rays), worth tracing in packets.
+    fn intersect_serial(
+        &self,
+        rays: &[Ray],
+        out: &mut [Option<SurfaceHit>],
+        coherent: bool,
+    ) -> Result<(), TraceError>;
     /// How far a ray restarting at a hit point is moved along its new direction (mm).
     fn offset(&self) -> f64;
 }
@@ -91,6 +97,11 @@ impl MeshSurface {
     pub fn mesh(&self) -> &TriMesh {
         &self.mesh
     }
+
+    /// The Embree scene holding it.
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
 }
 
 /// Embree works in f32: a restarting ray must clear the float error of the surface, which scales
@@ -101,31 +112,41 @@ fn restart_offset(mesh: &TriMesh) -> f64 {
     1e-6 * extent
 }
 
+impl MeshSurface {
+    fn surface_hit(&self, h: &Hit) -> SurfaceHit {
+        let [a, b, c] = self.mesh.corners(h.prim as usize);
+        let w = 1.0 - h.u - h.v;
+        let point = Point3::from(a.coords * w + b.coords * h.u + c.coords * h.v);
+        let geometric_normal = self.mesh.face_cross(h.prim as usize).normalize();
+        let shading_normal = match &self.vertex_normals {
+            None => geometric_normal,
+            Some(n) => {
+                let [i, j, k] = self.mesh.faces[h.prim as usize].map(|v| v as usize);
+                (n[i] * w + n[j] * h.u + n[k] * h.v)
+                    .try_normalize(0.0)
+                    .unwrap_or(geometric_normal)
+            }
+        };
+        SurfaceHit {
+            point,
+            geometric_normal,
+            shading_normal,
+            prim: h.prim,
+        }
+    }
+}
+
 impl Surface for MeshSurface {
-    fn intersect(&self, rays: &[Ray], out: &mut [Option<SurfaceHit>]) -> Result<(), TraceError> {
-        let hits = self.scene.intersect(rays, false)?;
-        for (o, h) in out.iter_mut().zip(hits) {
-            *o = h.map(|h| {
-                let [a, b, c] = self.mesh.corners(h.prim as usize);
-                let w = 1.0 - h.u - h.v;
-                let point = Point3::from(a.coords * w + b.coords * h.u + c.coords * h.v);
-                let geometric_normal = self.mesh.face_cross(h.prim as usize).normalize();
-                let shading_normal = match &self.vertex_normals {
-                    None => geometric_normal,
-                    Some(n) => {
-                        let [i, j, k] = self.mesh.faces[h.prim as usize].map(|v| v as usize);
-                        (n[i] * w + n[j] * h.u + n[k] * h.v)
-                            .try_normalize(0.0)
-                            .unwrap_or(geometric_normal)
-                    }
-                };
-                SurfaceHit {
-                    point,
-                    geometric_normal,
-                    shading_normal,
-                    prim: h.prim,
-                }
-            });
+    fn intersect_serial(
+        &self,
+        rays: &[Ray],
+        out: &mut [Option<SurfaceHit>],
+        coherent: bool,
+    ) -> Result<(), TraceError> {
+        let mut hits = vec![None; rays.len()];
+        self.scene.intersect_serial(rays, &mut hits, coherent)?;
+        for (o, h) in out.iter_mut().zip(&hits) {
+            *o = h.as_ref().map(|h| self.surface_hit(h));
         }
         Ok(())
     }
@@ -198,13 +219,21 @@ impl Trail {
     }
 }
 
-/// Traces `rays` (unit directions) through `surface`.
+/// Rays traced together on one thread: every interface of the chunk is one batch for Embree,
+/// small enough to stay in cache.
+pub const TRACE_CHUNK: usize = 2048;
+
+/// Traces `rays` (unit directions) through `surface`, in parallel chunks.
 pub fn trace_paths(
     surface: &dyn Surface,
     rays: &[Ray],
     settings: &PathSettings,
 ) -> Result<Vec<Path>, TraceError> {
-    trace(surface, rays, settings, None)
+    let chunks: Vec<Vec<Path>> = rays
+        .par_chunks(TRACE_CHUNK)
+        .map(|c| trace_chunk(surface, c, settings, None))
+        .collect::<Result<_, _>>()?;
+    Ok(chunks.concat())
 }
 
 /// As [`trace_paths`], also recording which elements each path refracted at;
@@ -214,18 +243,29 @@ pub fn trace_trails(
     rays: &[Ray],
     settings: &PathSettings,
 ) -> Result<(Vec<Path>, Vec<Trail>), TraceError> {
-    assert!(settings.max_refractions as usize <= MAX_TRAIL);
-    let mut trails = vec![Trail::default(); rays.len()];
-    let paths = trace(surface, rays, settings, Some(&mut trails))?;
-    Ok((paths, trails))
+    let chunks: Vec<(Vec<Path>, Vec<Trail>)> = rays
+        .par_chunks(TRACE_CHUNK)
+        .map(|c| {
+            let mut trails = vec![Trail::default(); c.len()];
+            trace_chunk(surface, c, settings, Some(&mut trails)).map(|p| (p, trails))
+        })
+        .collect::<Result<_, _>>()?;
+    let (paths, trails): (Vec<Vec<Path>>, Vec<Vec<Trail>>) = chunks.into_iter().unzip();
+    Ok((paths.concat(), trails.concat()))
 }
 
-fn trace(
+/// Traces `rays` on the calling thread, one interface at a time for all of them (the first
+/// batch, the caller's rays in their order, in packets); records the elements refracted at into
+/// `trails` if given (then `settings.max_refractions` must not exceed [`MAX_TRAIL`]).
+pub fn trace_chunk(
     surface: &dyn Surface,
     rays: &[Ray],
     settings: &PathSettings,
     mut trails: Option<&mut [Trail]>,
 ) -> Result<Vec<Path>, TraceError> {
+    if trails.is_some() {
+        assert!(settings.max_refractions as usize <= MAX_TRAIL);
+    }
     let mut paths: Vec<Path> = rays
         .iter()
         .map(|r| Path {
@@ -237,45 +277,41 @@ fn trace(
         })
         .collect();
     let mut active: Vec<usize> = (0..rays.len()).collect();
-    let mut batch = Vec::new();
-    let mut hits = Vec::new();
+    let mut batch = rays.to_vec();
+    let mut hits = vec![None; rays.len()];
+    let offset = surface.offset();
+    let mut first = true;
     while !active.is_empty() {
-        batch.clear();
-        batch.extend(active.iter().map(|&i| {
-            let (p, r) = (&paths[i], &rays[i]);
-            // The first segment keeps the caller's interval; later ones start at the offset point.
-            if p.refractions == 0 {
-                *r
-            } else {
-                Ray::new(p.origin, p.dir)
+        if !first {
+            batch.clear();
+            batch.extend(
+                active
+                    .iter()
+                    .map(|&i| Ray::new(paths[i].origin, paths[i].dir)),
+            );
+        }
+        let hits = &mut hits[..batch.len()];
+        surface.intersect_serial(&batch, hits, first)?;
+        first = false;
+        let mut next = 0;
+        for k in 0..active.len() {
+            let i = active[k];
+            let Some(h) = &hits[k] else { continue };
+            let p = step(&paths[i], h, settings, offset);
+            if let Some(t) = trails.as_deref_mut() {
+                if p.refractions > paths[i].refractions {
+                    let t = &mut t[i];
+                    t.prims[t.len as usize] = h.prim;
+                    t.len += 1;
+                }
             }
-        }));
-        hits.clear();
-        hits.resize(batch.len(), None);
-        surface.intersect(&batch, &mut hits)?;
-        let offset = surface.offset();
-        let steps: Vec<Option<Path>> = active
-            .par_iter()
-            .zip(hits.par_iter())
-            .map(|(&i, hit)| hit.map(|h| step(&paths[i], &h, settings, offset)))
-            .collect();
-        let mut next = Vec::with_capacity(active.len());
-        for ((&i, s), h) in active.iter().zip(steps).zip(&hits) {
-            if let Some(p) = s {
-                if let (Some(t), Some(h)) = (trails.as_deref_mut(), h) {
-                    if p.refractions > paths[i].refractions {
-                        let t = &mut t[i];
-                        t.prims[t.len as usize] = h.prim;
-                        t.len += 1;
-                    }
-                }
-                paths[i] = p;
-                if p.end == PathEnd::Left {
-                    next.push(i);
-                }
+            paths[i] = p;
+            if p.end == PathEnd::Left {
+                active[next] = i;
+                next += 1;
             }
         }
-        active = next;
+        active.truncate(next);
     }
     Ok(paths)
 }

@@ -1,0 +1,135 @@
+//! `glasscan bench gradient`: the cost of the refraction term's loss and gradient over a scan,
+//! against the bare Embree queries the same evaluation makes.
+//!
+//! One evaluation = for every view, trace all object pixels with a decoded point through the
+//! mesh (batched per interface), recompute each kept path in f64, differentiate it backwards,
+//! and sum the gradients (then through the vertex normals, for that model). The yardstick replays
+//! exactly the ray batches that evaluation sent to Embree, in the same mode (packets for the
+//! camera rays), through Embree alone (closest hit, no f64 refinement, nothing done with the
+//! hits).
+
+use std::sync::Mutex;
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
+use crate::loss::{Accumulator, Accumulators, Drops};
+use crate::mesh::TriMesh;
+use crate::trace::path::{MeshSurface, NormalModel, Surface, SurfaceHit};
+use crate::trace::{BuildMode, Ray, TraceError};
+
+/// What [`run`] measured (times are medians over the repeats).
+#[derive(Clone, Debug, Serialize)]
+pub struct GradientBenchReport {
+    pub threads: usize,
+    pub faces: usize,
+    pub views: usize,
+    /// Camera rays (object pixels with a decoded point) per evaluation.
+    pub camera_rays: usize,
+    /// Embree queries per evaluation (camera rays and every later segment).
+    pub queries: usize,
+    pub used: usize,
+    pub drops: Drops,
+    pub seconds_per_gradient: f64,
+    pub seconds_per_view: f64,
+    pub seconds_embree_only: f64,
+    pub camera_rays_per_s: f64,
+    pub queries_per_s: f64,
+    pub embree_queries_per_s: f64,
+    /// queries_per_s / embree_queries_per_s.
+    pub ratio: f64,
+}
+
+/// A surface that records every batch it is asked to intersect.
+struct Recording<'a> {
+    inner: &'a MeshSurface,
+    batches: Mutex<Vec<(Vec<Ray>, bool)>>,
+}
+
+impl Surface for Recording<'_> {
+    fn intersect_serial(
+        &self,
+        rays: &[Ray],
+        out: &mut [Option<SurfaceHit>],
+        coherent: bool,
+    ) -> Result<(), TraceError> {
+        self.batches
+            .lock()
+            .expect("not poisoned")
+            .push((rays.to_vec(), coherent));
+        self.inner.intersect_serial(rays, out, coherent)
+    }
+    fn offset(&self) -> f64 {
+        self.inner.offset()
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Measures `repeats` evaluations of the refraction term of `views` on `mesh`.
+pub fn run(
+    mesh: &TriMesh,
+    views: &[ViewTargets],
+    s: &RefractionSettings,
+    repeats: usize,
+    mut progress: impl FnMut(usize),
+) -> Result<GradientBenchReport, TraceError> {
+    let surface = MeshSurface::with_mode(mesh, s.normals, BuildMode::Refit)?;
+    let normals = (s.normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
+    let evaluate = |surface: &dyn Surface| -> Result<Accumulator, TraceError> {
+        let accs = Accumulators::new(mesh.positions.len(), normals.is_some());
+        for v in views {
+            add_view(surface, mesh, normals.as_deref(), s, v, &accs)?;
+        }
+        Ok(accs.total())
+    };
+    // One recorded evaluation: the batches, and the figures.
+    let recording = Recording {
+        inner: &surface,
+        batches: Mutex::new(Vec::new()),
+    };
+    let acc = evaluate(&recording)?;
+    let (used, drops) = (acc.used, acc.drops);
+    let batches = recording.batches.into_inner().expect("not poisoned");
+    let queries: usize = batches.iter().map(|(b, _)| b.len()).sum();
+    let mut t_full = Vec::new();
+    let mut t_raw = Vec::new();
+    for r in 0..repeats.max(1) {
+        let t0 = Instant::now();
+        let acc = evaluate(&surface)?;
+        std::hint::black_box(acc.finish(mesh));
+        t_full.push(t0.elapsed().as_secs_f64());
+        let t1 = Instant::now();
+        // The same batches, as many at a time as the evaluation had threads.
+        let hits: usize = batches
+            .par_iter()
+            .map(|(b, coherent)| surface.scene().count_hits_serial(b, *coherent))
+            .sum::<Result<usize, TraceError>>()?;
+        std::hint::black_box(hits);
+        t_raw.push(t1.elapsed().as_secs_f64());
+        progress(r + 1);
+    }
+    let (full, raw) = (median(t_full), median(t_raw));
+    let camera_rays: usize = views.iter().map(|v| v.pixels.len()).sum();
+    Ok(GradientBenchReport {
+        threads: rayon::current_num_threads(),
+        faces: mesh.faces.len(),
+        views: views.len(),
+        camera_rays,
+        queries,
+        used,
+        drops,
+        seconds_per_gradient: full,
+        seconds_per_view: full / views.len().max(1) as f64,
+        seconds_embree_only: raw,
+        camera_rays_per_s: camera_rays as f64 / full,
+        queries_per_s: queries as f64 / full,
+        embree_queries_per_s: queries as f64 / raw,
+        ratio: raw / full,
+    })
+}

@@ -1,0 +1,65 @@
+//! The refraction term's inputs from a decoded scan: per view, the camera ray of every object
+//! pixel with a decoded monitor point, that point in the world frame, and a weight from the
+//! decoder's uncertainty.
+
+use anyhow::Result;
+use rayon::prelude::*;
+
+use super::refraction::{PixelTarget, ViewTargets};
+use crate::decode::form::{DecodedScan, MonitorTarget};
+use crate::scan::Scan;
+
+/// Weight of a decoded point from its cell (monitor pixels): the inverse of its variance, a
+/// uniform spread over the cell ((c_u² + c_v²)/12 px²), relative to a fully decoded 1×1 cell, so
+/// every bit reliable weighs 1 and a 4×4 cell 1/16.
+pub fn weight(t: &MonitorTarget) -> f64 {
+    2.0 / (t.cell_u * t.cell_u + t.cell_v * t.cell_v).max(2.0)
+}
+
+/// The targets of `views` (skipping views decode left out, which are returned by index).
+pub fn scan_targets(scan: &Scan, views: &[usize]) -> Result<(Vec<ViewTargets>, Vec<usize>)> {
+    let decoded = DecodedScan::open(&scan.dir, (scan.camera.width, scan.camera.height))?;
+    let poses = scan.view_poses();
+    let loaded: Vec<Result<Option<ViewTargets>>> = views
+        .par_iter()
+        .map(|&k| {
+            let Some(dv) = decoded.view(k)? else {
+                return Ok(None);
+            };
+            let to_world = poses[k].inverse();
+            let screen = scan.screen.transformed(&to_world);
+            let w = dv.width as usize;
+            let pixels = dv
+                .mask
+                .iter()
+                .zip(&dv.targets)
+                .enumerate()
+                .filter_map(|(i, (&m, t))| {
+                    let t = t.as_ref().filter(|_| m)?;
+                    let dir = scan.camera.pixel_ray((i % w) as f64, (i / w) as f64)?;
+                    Some(PixelTarget {
+                        dir: to_world * dir,
+                        target: screen.point(t.u, t.v),
+                        weight: weight(t),
+                    })
+                })
+                .collect();
+            Ok(Some(ViewTargets {
+                view: k,
+                eye: to_world * nalgebra::Point3::origin(),
+                monitor_point: screen.point(0.0, 0.0),
+                monitor_normal: screen.pose * nalgebra::Vector3::z(),
+                pixels,
+            }))
+        })
+        .collect();
+    let mut out = Vec::new();
+    let mut skipped = Vec::new();
+    for (&k, v) in views.iter().zip(loaded) {
+        match v? {
+            Some(v) => out.push(v),
+            None => skipped.push(k),
+        }
+    }
+    Ok((out, skipped))
+}
