@@ -108,6 +108,7 @@ pub enum DropReason {
 
 /// Loss of one pixel and its gradient, recorded into `grad` (vertex, ∂L/∂position) and
 /// `ngrad` (vertex, ∂L/∂unit vertex normal).
+#[derive(Clone, Debug, Default)]
 pub struct PixelGradient {
     pub loss: f64,
     pub grad: ArrayVec<(u32, V3), { 3 * MAX_TRAIL }>,
@@ -130,6 +131,19 @@ pub fn pixel_gradient(
     px: &PixelTarget,
     prims: &[u32],
 ) -> Result<PixelGradient, DropReason> {
+    let mut out = PixelGradient::default();
+    pixel_gradient_into(mesh, s, view, px, prims, &mut out).map(|()| out)
+}
+
+/// As [`pixel_gradient`], into `out` (overwritten; reused across pixels by the hot loop).
+pub fn pixel_gradient_into(
+    mesh: &MeshState,
+    s: &RefractionSettings,
+    view: &ViewTargets,
+    px: &PixelTarget,
+    prims: &[u32],
+    out: &mut PixelGradient,
+) -> Result<(), DropReason> {
     // Forward.
     if prims.len() > MAX_TRAIL {
         return Err(DropReason::RefractionCount);
@@ -211,8 +225,9 @@ pub fn pixel_gradient(
         }
     };
     // Backward through the interfaces.
-    let mut grad = ArrayVec::new();
-    let mut ngrad = ArrayVec::new();
+    out.grad.clear();
+    out.ngrad.clear();
+    let (grad, ngrad) = (&mut out.grad, &mut out.ngrad);
     for it in chain.iter().rev() {
         // d_next = out / |out|.
         let gout = normalize_adjoint(&(it.snell.out / it.out_norm), it.out_norm, &gd);
@@ -257,12 +272,13 @@ pub fn pixel_gradient(
     let finite = loss.is_finite()
         && grad
             .iter()
-            .chain(&ngrad)
+            .chain(ngrad.iter())
             .all(|(_, g)| g.iter().all(|x| x.is_finite()));
     if !finite {
         return Err(DropReason::NonFinite);
     }
-    Ok(PixelGradient { loss, grad, ngrad })
+    out.loss = loss;
+    Ok(())
 }
 
 /// Traces one view through `surface` (holding `mesh`; with `vertex_normals` of `mesh` for the
@@ -293,12 +309,13 @@ pub fn add_view(
             let rays: Vec<Ray> = chunk.iter().map(|p| Ray::new(view.eye, p.dir)).collect();
             let mut trails = vec![Trail::default(); chunk.len()];
             let paths = trace_chunk(surface, &rays, &settings, Some(&mut trails))?;
+            let mut g = PixelGradient::default();
             accs.with(|a| {
                 for ((px, path), trail) in chunk.iter().zip(&paths).zip(&trails) {
-                    match classify(&path.end, path.refractions, s.max_refractions)
-                        .and_then(|()| pixel_gradient(&mesh, s, view, px, trail.prims()))
-                    {
-                        Ok(g) => a.add_pixel(&g),
+                    match classify(&path.end, path.refractions, s.max_refractions).and_then(|()| {
+                        pixel_gradient_into(&mesh, s, view, px, trail.prims(), &mut g)
+                    }) {
+                        Ok(()) => a.add_pixel(&g),
                         Err(r) => a.drops.count(r),
                     }
                 }
