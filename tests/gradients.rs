@@ -10,7 +10,7 @@ use glasscan::loss::refraction::{
 };
 use glasscan::loss::silhouette::{contour_edges, edge_gradient, SilhouetteForm};
 use glasscan::loss::smoothness::{add_smoothness, Smoothness};
-use glasscan::loss::{Accumulator, Accumulators, DropReason, Robust};
+use glasscan::loss::{Accumulator, Contributions, DropReason, Robust};
 use glasscan::mesh::shapes::{ellipsoid, icosphere, perturb_radially};
 use glasscan::mesh::TriMesh;
 use glasscan::rig::{Camera, Turntable};
@@ -160,7 +160,9 @@ fn analytic(c: &Case) -> Vec<V3> {
     let vn = (c.s.normals == NormalModel::Vertex).then(|| c.mesh.vertex_normals());
     let g = pixel_gradient(&state(&c.mesh, &vn), &c.s, &c.view, &c.px, &c.prims).unwrap();
     let mut acc = Accumulator::new(c.mesh.positions.len(), vn.is_some());
-    acc.add_pixel(&g);
+    let mut contributions = Contributions::default();
+    contributions.push_pixel(&g);
+    acc.add(&[contributions]);
     acc.finish(&c.mesh)
 }
 
@@ -392,14 +394,13 @@ fn degenerate_triangles_drop_rays_and_never_reach_a_gradient() {
     let mut sphere = icosphere(5.0, 1);
     let f0 = sphere.faces[0];
     sphere.positions[f0[1] as usize] = sphere.positions[f0[0] as usize];
-    let accs = Accumulators::new(sphere.positions.len(), false);
+    let mut acc = Accumulator::new(sphere.positions.len(), false);
     add_smoothness(
         &sphere,
         &sphere.interior_edges(),
         Smoothness::NegLogOnePlusCos,
-        &accs,
+        &mut acc,
     );
-    let acc = accs.total();
     assert!(acc.drops.non_finite > 0);
     assert!(acc.grad.iter().all(|g| g.iter().all(|x| x.is_finite())) && acc.loss.is_finite());
 }
@@ -416,9 +417,9 @@ fn smoothness_gradients_match_finite_differences() {
         Smoothness::Annealed { tau: 0.1 },
     ] {
         let total = |m: &TriMesh| {
-            let accs = Accumulators::new(m.positions.len(), false);
-            add_smoothness(m, &edges, kind, &accs);
-            accs.total()
+            let mut acc = Accumulator::new(m.positions.len(), false);
+            add_smoothness(m, &edges, kind, &mut acc);
+            acc
         };
         let g = total(&mesh).grad;
         let gmax = g.iter().map(|v| v.amax()).fold(0.0, f64::max);
@@ -610,11 +611,10 @@ fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
             .collect();
         let evaluate = |surface: &MeshSurface| {
             let vn = (normals == NormalModel::Vertex).then(|| surface.mesh().vertex_normals());
-            let accs = Accumulators::new(mesh.positions.len(), vn.is_some());
+            let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
             for v in &views {
-                add_view(surface, surface.mesh(), vn.as_deref(), &s, v, &accs).unwrap();
+                add_view(surface, surface.mesh(), vn.as_deref(), &s, v, &mut acc).unwrap();
             }
-            let acc = accs.total();
             let (loss, used, drops) = (acc.loss, acc.used, acc.drops);
             let g = acc.finish(surface.mesh());
             (
@@ -637,6 +637,79 @@ fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
         assert!(
             gnorm < 1e-4 * gnorm_grown,
             "{normals:?}: |gradient| {gnorm:e} on the truth, {gnorm_grown:e} 0.1 % off"
+        );
+    }
+}
+
+#[test]
+fn gradients_are_bitwise_the_same_on_any_number_of_threads() {
+    let mut mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
+    perturb_radially(&mut mesh, 0.3, 9);
+    let cam = ring_camera(200, 150, 300.0, [0.0; 5]);
+    let pose = Turntable {
+        axis_point: Point3::new(0.0, 0.0, 300.0),
+        axis_dir: -V3::y_axis(),
+        angles_deg: vec![30.0],
+    }
+    .view_poses()
+    .unwrap()[0];
+    let to_world = pose.inverse();
+    let eye = to_world * Point3::origin();
+    let view = ViewTargets {
+        view: 0,
+        eye,
+        monitor_point: to_world * Point3::new(0.0, 0.0, 500.0),
+        monitor_normal: to_world * V3::z(),
+        pixels: (0..200 * 150)
+            .map(|i| PixelTarget {
+                dir: to_world * cam.pixel_ray((i % 200) as f64, (i / 200) as f64).unwrap(),
+                target: to_world
+                    * Point3::new(
+                        ((i % 200) as f64 - 100.0) * 0.9,
+                        ((i / 200) as f64 - 75.0) * 0.9,
+                        500.0,
+                    ),
+                weight: 1.0,
+            })
+            .collect(),
+    };
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let surface = MeshSurface::new(&mesh, NormalModel::Vertex).unwrap();
+                let s = settings(
+                    1.5,
+                    NormalModel::Vertex,
+                    ResidualForm::Screen,
+                    Robust::Huber(1.0),
+                );
+                let vn = mesh.vertex_normals();
+                let mut acc = Accumulator::new(mesh.positions.len(), true);
+                add_view(&surface, &mesh, Some(&vn), &s, &view, &mut acc).unwrap();
+                add_smoothness(
+                    &mesh,
+                    &mesh.interior_edges(),
+                    Smoothness::LogTwoMinusCos,
+                    &mut acc,
+                );
+                let loss = acc.loss;
+                (loss, acc.finish(&mesh))
+            })
+    };
+    let (l1, g1) = run(1);
+    assert!(l1 > 0.0);
+    for threads in [2, 3] {
+        let (l, g) = run(threads);
+        assert_eq!(l.to_bits(), l1.to_bits(), "{threads} threads");
+        assert!(
+            g.iter().zip(&g1).all(|(a, b)| a
+                .iter()
+                .zip(b.iter())
+                .all(|(x, y)| x.to_bits() == y.to_bits())),
+            "{threads} threads"
         );
     }
 }

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
-use crate::loss::{Accumulator, Accumulators, Drops};
+use crate::loss::{Accumulator, Drops};
 use crate::mesh::TriMesh;
 use crate::trace::path::{MeshSurface, NormalModel, Surface, SurfaceHit};
 use crate::trace::{BuildMode, Ray, TraceError};
@@ -82,11 +82,11 @@ pub fn run(
     let surface = MeshSurface::with_mode(mesh, s.normals, BuildMode::Refit)?;
     let normals = (s.normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
     let evaluate = |surface: &dyn Surface| -> Result<Accumulator, TraceError> {
-        let accs = Accumulators::new(mesh.positions.len(), normals.is_some());
+        let mut acc = Accumulator::new(mesh.positions.len(), normals.is_some());
         for v in views {
-            add_view(surface, mesh, normals.as_deref(), s, v, &accs)?;
+            add_view(surface, mesh, normals.as_deref(), s, v, &mut acc)?;
         }
-        Ok(accs.total())
+        Ok(acc)
     };
     // One recorded evaluation: the batches, and the figures.
     let recording = Recording {

@@ -2,8 +2,9 @@
 //! position (DESIGN §4–5), written by hand: [`refraction`] (decoded monitor points),
 //! [`silhouette`] (contour edges against the masks) and [`smoothness`] (dihedral angles).
 //!
-//! Gradients are accumulated per thread in an [`Accumulator`] and summed; rays or edges whose
-//! derivative would not be finite are dropped and counted in [`Drops`], never added.
+//! Each chunk of rays or edges is differentiated on one thread into [`Contributions`], which are
+//! summed into an [`Accumulator`] in chunk order (deterministic); rays or edges whose derivative
+//! would not be finite are dropped and counted in [`Drops`], never added.
 
 pub mod diff;
 pub mod refraction;
@@ -11,11 +12,9 @@ pub mod silhouette;
 pub mod smoothness;
 pub mod targets;
 
-use std::cell::RefCell;
-
 use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use thread_local::ThreadLocal;
 
 use crate::mesh::TriMesh;
 use diff::{face_cross_adjoint, normalize_adjoint};
@@ -95,39 +94,26 @@ impl Drops {
     }
 }
 
-/// One [`Accumulator`] per worker thread, summed at the end: the hot loops add to their own
-/// thread's buffers (no locks, no atomics), and the buffers live across views.
-pub struct Accumulators {
-    vertices: usize,
-    vertex_normals: bool,
-    per_thread: ThreadLocal<RefCell<Accumulator>>,
+/// What one chunk of rays (or edges) adds, computed on one thread: loss, counts and the
+/// per-vertex gradient entries. Chunks are summed in their order ([`Accumulator::add`]), so the
+/// sums do not depend on the thread schedule: same inputs, same bits.
+#[derive(Clone, Debug, Default)]
+pub struct Contributions {
+    pub loss: f64,
+    pub used: usize,
+    pub drops: Drops,
+    /// (vertex, ∂L/∂position) entries.
+    pub grad: Vec<(u32, V3)>,
+    /// (vertex, ∂L/∂unit vertex normal) entries.
+    pub ngrad: Vec<(u32, V3)>,
 }
 
-impl Accumulators {
-    pub fn new(vertices: usize, vertex_normals: bool) -> Self {
-        Self {
-            vertices,
-            vertex_normals,
-            per_thread: ThreadLocal::new(),
-        }
-    }
-
-    /// Runs `f` on the calling thread's accumulator.
-    #[inline]
-    pub fn with<R>(&self, f: impl FnOnce(&mut Accumulator) -> R) -> R {
-        let cell = self
-            .per_thread
-            .get_or(|| RefCell::new(Accumulator::new(self.vertices, self.vertex_normals)));
-        f(&mut cell.borrow_mut())
-    }
-
-    /// The sum over threads.
-    pub fn total(self) -> Accumulator {
-        let (v, n) = (self.vertices, self.vertex_normals);
-        self.per_thread
-            .into_iter()
-            .map(RefCell::into_inner)
-            .fold(Accumulator::new(v, n), Accumulator::merge)
+impl Contributions {
+    pub fn push_pixel(&mut self, g: &PixelGradient) {
+        self.loss += g.loss;
+        self.used += 1;
+        self.grad.extend_from_slice(&g.grad);
+        self.ngrad.extend_from_slice(&g.ngrad);
     }
 }
 
@@ -157,32 +143,36 @@ impl Accumulator {
         }
     }
 
-    pub fn add_pixel(&mut self, g: &PixelGradient) {
-        self.loss += g.loss;
-        self.used += 1;
-        for &(v, x) in &g.grad {
-            self.grad[v as usize] += x;
+    /// Adds chunks' contributions, in their order. The vertex range is split between threads,
+    /// each adding, in chunk order, the entries that fall in its part: every vertex sees the
+    /// same sequence of additions whatever the schedule.
+    pub fn add(&mut self, chunks: &[Contributions]) {
+        for c in chunks {
+            self.loss += c.loss;
+            self.used += c.used;
+            self.drops.add(&c.drops);
         }
-        for &(v, x) in &g.ngrad {
-            self.normal_grad[v as usize] += x;
-        }
-    }
-
-    pub fn merge(mut self, o: Self) -> Self {
-        self.merge_from(o);
-        self
-    }
-
-    pub fn merge_from(&mut self, o: Self) {
-        self.loss += o.loss;
-        self.used += o.used;
-        self.drops.add(&o.drops);
-        for (a, b) in self.grad.iter_mut().zip(&o.grad) {
-            *a += b;
-        }
-        for (a, b) in self.normal_grad.iter_mut().zip(&o.normal_grad) {
-            *a += b;
-        }
+        let parts = 4 * rayon::current_num_threads();
+        let scatter = |target: &mut [V3], entries: fn(&Contributions) -> &[(u32, V3)]| {
+            let block = target.len().div_ceil(parts).max(1);
+            target
+                .par_chunks_mut(block)
+                .enumerate()
+                .for_each(|(b, part)| {
+                    let lo = b * block;
+                    for c in chunks {
+                        for &(v, x) in entries(c) {
+                            if let Some(t) =
+                                (v as usize).checked_sub(lo).and_then(|i| part.get_mut(i))
+                            {
+                                *t += x;
+                            }
+                        }
+                    }
+                });
+        };
+        scatter(&mut self.grad, |c| &c.grad);
+        scatter(&mut self.normal_grad, |c| &c.ngrad);
     }
 
     /// The gradient with respect to the positions of `mesh`: the vertex-normal adjoints go

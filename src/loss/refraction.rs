@@ -17,7 +17,7 @@ use super::diff::{
     barycentric, barycentric_adjoint, normalize_adjoint, plane_hit, plane_hit_adjoint, snell,
     snell_adjoint, PlaneHit, Snell, SnellFailure,
 };
-use super::{Accumulators, Drops, Robust};
+use super::{Accumulator, Contributions, Drops, Robust};
 use crate::mesh::TriMesh;
 use crate::trace::path::{
     trace_chunk, NormalModel, PathEnd, PathSettings, Surface, Trail, MAX_TRAIL, TRACE_CHUNK,
@@ -282,14 +282,14 @@ pub fn pixel_gradient_into(
 }
 
 /// Traces one view through `surface` (holding `mesh`; with `vertex_normals` of `mesh` for the
-/// vertex-normal model) and adds its refraction loss and gradient to `accs`.
+/// vertex-normal model) and adds its refraction loss and gradient to `acc`.
 pub fn add_view(
     surface: &dyn Surface,
     mesh: &TriMesh,
     vertex_normals: Option<&[V3]>,
     s: &RefractionSettings,
     view: &ViewTargets,
-    accs: &Accumulators,
+    acc: &mut Accumulator,
 ) -> Result<(), TraceError> {
     let settings = PathSettings {
         ior: s.ior,
@@ -302,26 +302,28 @@ pub fn add_view(
         vertex_normals,
     };
     // Trace and differentiate chunk by chunk, each on one thread, so the chunk's paths stay in
-    // cache between the two.
-    view.pixels
+    // cache between the two; then sum the chunks in order.
+    let chunks: Vec<Contributions> = view
+        .pixels
         .par_chunks(TRACE_CHUNK)
-        .try_for_each(|chunk| -> Result<(), TraceError> {
+        .map(|chunk| -> Result<Contributions, TraceError> {
             let rays: Vec<Ray> = chunk.iter().map(|p| Ray::new(view.eye, p.dir)).collect();
             let mut trails = vec![Trail::default(); chunk.len()];
             let paths = trace_chunk(surface, &rays, &settings, Some(&mut trails))?;
+            let mut c = Contributions::default();
             let mut g = PixelGradient::default();
-            accs.with(|a| {
-                for ((px, path), trail) in chunk.iter().zip(&paths).zip(&trails) {
-                    match classify(&path.end, path.refractions, s.max_refractions).and_then(|()| {
-                        pixel_gradient_into(&mesh, s, view, px, trail.prims(), &mut g)
-                    }) {
-                        Ok(()) => a.add_pixel(&g),
-                        Err(r) => a.drops.count(r),
-                    }
+            for ((px, path), trail) in chunk.iter().zip(&paths).zip(&trails) {
+                match classify(&path.end, path.refractions, s.max_refractions)
+                    .and_then(|()| pixel_gradient_into(&mesh, s, view, px, trail.prims(), &mut g))
+                {
+                    Ok(()) => c.push_pixel(&g),
+                    Err(r) => c.drops.count(r),
                 }
-            });
-            Ok(())
-        })?;
+            }
+            Ok(c)
+        })
+        .collect::<Result<_, _>>()?;
+    acc.add(&chunks);
     Ok(())
 }
 

@@ -20,7 +20,7 @@ use nalgebra::{Point3, Vector2, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::Accumulators;
+use super::{Accumulator, Contributions};
 use crate::hull::silhouette::Silhouette;
 use crate::mesh::{InteriorEdge, TriMesh};
 use crate::trace::{Ray, Scene, TraceError};
@@ -147,27 +147,33 @@ pub fn edge_gradient(
         .then_some((loss, grads))
 }
 
-/// Adds view `sil`'s silhouette loss and gradient to `accs`.
+/// Adds view `sil`'s silhouette loss and gradient to `acc`.
 pub fn add_view(
     mesh: &TriMesh,
     edges: &[InteriorEdge],
     sil: &Silhouette,
     scene: &Scene,
     form: SilhouetteForm,
-    accs: &Accumulators,
+    acc: &mut Accumulator,
 ) -> Result<(), TraceError> {
     let contour = contour_edges(mesh, edges, sil, scene)?;
-    contour.par_iter().for_each(|e| {
-        let r = edge_gradient(mesh, sil, e, form);
-        accs.with(|a| match r {
-            Some((loss, g)) => {
-                a.loss += loss;
-                a.used += 1;
-                a.grad[e.verts[0] as usize] += g[0];
-                a.grad[e.verts[1] as usize] += g[1];
+    let chunks: Vec<Contributions> = contour
+        .par_chunks(1024)
+        .map(|chunk| {
+            let mut c = Contributions::default();
+            for e in chunk {
+                match edge_gradient(mesh, sil, e, form) {
+                    Some((loss, g)) => {
+                        c.loss += loss;
+                        c.used += 1;
+                        c.grad.extend([(e.verts[0], g[0]), (e.verts[1], g[1])]);
+                    }
+                    None => c.drops.non_finite += 1,
+                }
             }
-            None => a.drops.non_finite += 1,
-        });
-    });
+            c
+        })
+        .collect();
+    acc.add(&chunks);
     Ok(())
 }

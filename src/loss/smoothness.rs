@@ -6,7 +6,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::diff::{face_cross_adjoint, normalize_adjoint};
-use super::{Accumulators, DropReason};
+use super::{Accumulator, Contributions, DropReason};
 use crate::mesh::{InteriorEdge, TriMesh};
 
 type V3 = Vector3<f64>;
@@ -38,28 +38,33 @@ impl Smoothness {
     }
 }
 
-/// Adds Σ ψ(cos θ) over `edges` (from [`TriMesh::interior_edges`]) and its gradient to `accs`.
+/// Adds Σ ψ(cos θ) over `edges` (from [`TriMesh::interior_edges`]) and its gradient to `acc`.
 /// Edges with a zero-area face or a non-finite value are dropped and counted.
 pub fn add_smoothness(
     mesh: &TriMesh,
     edges: &[InteriorEdge],
     kind: Smoothness,
-    accs: &Accumulators,
+    acc: &mut Accumulator,
 ) {
-    edges.par_iter().with_min_len(4096).for_each(|e| {
-        let [f, g] = e.faces;
-        let r = pair_gradient(mesh, f as usize, g as usize, kind);
-        accs.with(|a| match r {
-            Ok((loss, grads)) => {
-                a.loss += loss;
-                a.used += 1;
-                for (v, x) in grads {
-                    a.grad[v as usize] += x;
+    let chunks: Vec<Contributions> = edges
+        .par_chunks(4096)
+        .map(|chunk| {
+            let mut c = Contributions::default();
+            for e in chunk {
+                let [f, g] = e.faces;
+                match pair_gradient(mesh, f as usize, g as usize, kind) {
+                    Ok((loss, grads)) => {
+                        c.loss += loss;
+                        c.used += 1;
+                        c.grad.extend_from_slice(&grads);
+                    }
+                    Err(r) => c.drops.count(r),
                 }
             }
-            Err(r) => a.drops.count(r),
-        });
-    });
+            c
+        })
+        .collect();
+    acc.add(&chunks);
 }
 
 /// ψ of one edge and the gradient on the vertices of its two faces.
