@@ -12,6 +12,7 @@ pub mod hull;
 pub mod loss;
 pub mod mesh;
 pub mod patterns;
+pub mod reconstruct;
 pub mod rig;
 pub mod scan;
 pub mod simulate;

@@ -25,6 +25,7 @@ mod eval;
 mod hull;
 mod info;
 mod patterns;
+mod reconstruct;
 mod remesh;
 mod simulate;
 
@@ -58,6 +59,8 @@ enum Command {
     Remesh(remesh::RemeshArgs),
     /// The visual hull of a decoded scan's silhouettes.
     Hull(hull::HullArgs),
+    /// The main job: optimise the mesh against a decoded scan, coarse to fine.
+    Reconstruct(reconstruct::ReconstructArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -95,6 +98,7 @@ pub fn run() -> Result<()> {
         Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),
         Command::Hull(a) => hull::run(&a),
+        Command::Reconstruct(a) => reconstruct::run(&a),
         Command::Bench(b) => bench::run(&b),
         Command::Demo(a) => demo::run(&a),
     }

@@ -59,7 +59,7 @@ impl Robust {
 }
 
 /// Rays (or edges) left out of a term, by reason.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Drops {
     /// The camera ray missed the mesh although the pixel is an object pixel.
     pub no_hit: usize,
@@ -83,7 +83,7 @@ impl Drops {
             + self.non_finite
     }
 
-    fn add(&mut self, o: &Drops) {
+    pub fn add(&mut self, o: &Drops) {
         self.no_hit += o.no_hit;
         self.total_internal_reflection += o.total_internal_reflection;
         self.refraction_count += o.refraction_count;

@@ -1,0 +1,207 @@
+//! Settings of a reconstruction: presets, and a TOML file that overrides any single key.
+
+use serde::{Deserialize, Serialize};
+
+use crate::loss::refraction::ResidualForm;
+use crate::loss::silhouette::SilhouetteForm;
+use crate::loss::smoothness::Smoothness;
+use crate::loss::Robust;
+use crate::trace::path::NormalModel;
+
+/// The optimiser.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum Optimizer {
+    /// DRT's: per-vertex offsets, SGD with Nesterov momentum; the learning rate (mm per unit of
+    /// clamped gradient) goes from `lr_start` to `lr_end` with 1/lr linear over the stages;
+    /// gradient components clamped to [−1, 1].
+    Sgd {
+        lr_start: f64,
+        lr_end: f64,
+        momentum: f64,
+    },
+    /// Nicolet et al. 2021: u = (I + λL)x with the uniform Laplacian L, the gradient mapped by a
+    /// cached sparse Cholesky solve, Adam with one second moment for all vertices (their
+    /// root-mean-square here, with each step clamped to 3 learning rates, where the paper takes
+    /// the maximum: outlying ray gradients would otherwise freeze every other vertex); the
+    /// learning rate is `lr_edge` edge lengths of the stage.
+    LargeSteps {
+        lambda: f64,
+        lr_edge: f64,
+        beta1: f64,
+        beta2: f64,
+    },
+}
+
+/// Everything that decides a reconstruction (recorded in the report and the checkpoint).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Settings {
+    pub preset: String,
+    pub seed: u64,
+    /// Remeshing stages; edge lengths from `start_edge` to `final_edge` with 1/length linear in
+    /// the stage index, both as a share of the initial mesh's bounding-box diagonal.
+    pub stages: usize,
+    pub start_edge: f64,
+    pub final_edge: f64,
+    pub iterations: usize,
+    pub remesh_iterations: usize,
+    pub optimizer: Optimizer,
+    /// Term weights (each term is a mean over its rays or edges).
+    pub weight_refraction: f64,
+    pub weight_silhouette: f64,
+    pub weight_smoothness: f64,
+    /// Views per iteration for the refraction and silhouette terms.
+    pub refraction_views: usize,
+    pub silhouette_views: usize,
+    /// Every `pixel_stride`-th object pixel of a view is used (random offset per iteration).
+    pub pixel_stride: usize,
+    pub normals: NormalModel,
+    pub residual: ResidualForm,
+    pub robust: Robust,
+    pub max_refractions: u32,
+    pub silhouette: SilhouetteForm,
+    pub smoothness: Smoothness,
+}
+
+impl Settings {
+    /// The named preset.
+    pub fn preset(name: &str) -> Option<Self> {
+        let large_steps = Optimizer::LargeSteps {
+            lambda: 20.0,
+            lr_edge: 0.05,
+            beta1: 0.9,
+            beta2: 0.999,
+        };
+        let base = Settings {
+            preset: name.to_string(),
+            seed: 0,
+            stages: 4,
+            start_edge: 1.0 / 30.0,
+            final_edge: 1.0 / 100.0,
+            iterations: 40,
+            remesh_iterations: 5,
+            optimizer: large_steps,
+            weight_refraction: 1.0,
+            weight_silhouette: 0.1,
+            weight_smoothness: 0.05,
+            refraction_views: 1,
+            silhouette_views: 4,
+            pixel_stride: 2,
+            normals: NormalModel::Face,
+            residual: ResidualForm::Screen,
+            robust: Robust::Huber(1.0),
+            max_refractions: 2,
+            silhouette: SilhouetteForm::Distance,
+            smoothness: Smoothness::LogTwoMinusCos,
+        };
+        Some(match name {
+            "fast" => base,
+            "balanced" => Settings {
+                stages: 6,
+                final_edge: 1.0 / 200.0,
+                iterations: 100,
+                pixel_stride: 1,
+                normals: NormalModel::Vertex,
+                silhouette_views: 8,
+                ..base
+            },
+            "accurate" => Settings {
+                stages: 8,
+                final_edge: 1.0 / 300.0,
+                iterations: 200,
+                pixel_stride: 1,
+                refraction_views: 2,
+                normals: NormalModel::Vertex,
+                max_refractions: 4,
+                silhouette_views: 8,
+                remesh_iterations: 10,
+                ..base
+            },
+            "drt" => Settings {
+                stages: 20,
+                start_edge: 1.0 / 30.0,
+                final_edge: 1.0 / 300.0,
+                iterations: 200,
+                remesh_iterations: 3,
+                optimizer: Optimizer::Sgd {
+                    lr_start: 0.1,
+                    lr_end: 0.05,
+                    momentum: 0.95,
+                },
+                weight_refraction: 1.0,
+                weight_silhouette: 0.1,
+                weight_smoothness: 0.05,
+                refraction_views: 1,
+                silhouette_views: 8,
+                pixel_stride: 1,
+                normals: NormalModel::Face,
+                residual: ResidualForm::Direction,
+                robust: Robust::L2,
+                silhouette: SilhouetteForm::Drt,
+                smoothness: Smoothness::NegLogOnePlusCos,
+                ..base
+            },
+            _ => return None,
+        })
+    }
+
+    /// The preset's settings with the keys of a TOML file (any subset of [`Settings`]'s)
+    /// overriding them; unknown keys and wrong types are errors naming them.
+    pub fn with_overrides(self, toml_text: &str) -> Result<Self, String> {
+        let mut value = toml::Value::try_from(&self).map_err(|e| e.to_string())?;
+        let over: toml::Table = toml::from_str(toml_text).map_err(|e| e.message().to_string())?;
+        let table = value.as_table_mut().expect("settings serialise to a table");
+        for (k, v) in over {
+            if !table.contains_key(&k) {
+                return Err(format!(
+                    "unknown setting '{k}' (settings: {})",
+                    table.keys().cloned().collect::<Vec<_>>().join(", ")
+                ));
+            }
+            table.insert(k, v);
+        }
+        value
+            .try_into()
+            .map_err(|e: toml::de::Error| e.message().to_string())
+    }
+
+    /// Checks ranges; the message names the setting.
+    pub fn check(&self) -> Result<(), String> {
+        let bad = |k: &str, why: &str| Err(format!("setting {k}: {why}"));
+        if self.stages == 0 || self.iterations == 0 {
+            return bad("stages/iterations", "must be at least 1");
+        }
+        if !(self.start_edge > 0.0 && self.final_edge > 0.0 && self.final_edge <= self.start_edge) {
+            return bad("start_edge/final_edge", "need 0 < final_edge ≤ start_edge");
+        }
+        if self.refraction_views == 0 || self.pixel_stride == 0 {
+            return bad("refraction_views/pixel_stride", "must be at least 1");
+        }
+        if self.max_refractions < 2 || self.max_refractions as usize > crate::trace::path::MAX_TRAIL
+        {
+            return bad("max_refractions", "must lie in 2..=8");
+        }
+        for (k, w) in [
+            ("weight_refraction", self.weight_refraction),
+            ("weight_silhouette", self.weight_silhouette),
+            ("weight_smoothness", self.weight_smoothness),
+        ] {
+            if !(w >= 0.0 && w.is_finite()) {
+                return bad(k, "must be a finite weight ≥ 0");
+            }
+        }
+        Ok(())
+    }
+
+    /// Target edge length of stage `s` (mm) for an initial bounding-box diagonal `diag`.
+    pub fn edge_mm(&self, s: usize, diag: f64) -> f64 {
+        let t = if self.stages > 1 {
+            s as f64 / (self.stages - 1) as f64
+        } else {
+            1.0
+        };
+        let inv = (1.0 - t) / self.start_edge + t / self.final_edge;
+        diag / inv
+    }
+}

@@ -1,0 +1,374 @@
+//! `glasscan reconstruct`: from a decoded scan and an initial mesh (the visual hull) to the mesh
+//! the data supports. Coarse to fine: each stage remeshes to its edge length, then iterates
+//! loss + gradient + optimiser step with the three terms weighted. After every stage the mesh
+//! is checked (watertight, manifold, outward, finite), written, and a checkpoint saved, from
+//! which `--resume` continues with the same result as an uninterrupted run.
+
+pub mod config;
+pub mod optim;
+pub mod plot;
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use nalgebra::Vector3;
+use rand::seq::index::sample;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::hull::silhouette::Silhouette;
+use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
+use crate::loss::smoothness::add_smoothness;
+use crate::loss::{silhouette, Accumulator, Drops};
+use crate::mesh::io::{read_mesh, write_mesh};
+use crate::mesh::remesh::{remesh, RemeshOptions};
+use crate::mesh::validate::{validate, Defect};
+use crate::mesh::TriMesh;
+use crate::trace::path::{MeshSurface, NormalModel};
+use crate::trace::refract::IOR_AIR;
+use crate::trace::BuildMode;
+use crate::util::atomic::write_atomic;
+use config::Settings;
+use optim::Stepper;
+
+type V3 = Vector3<f64>;
+
+/// What the optimisation reads from the scan, loaded once.
+pub struct Inputs {
+    pub ior: f64,
+    pub targets: Vec<ViewTargets>,
+    pub silhouettes: Vec<Silhouette>,
+}
+
+/// The weighted means of the terms at one iteration (before its step).
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+pub struct IterationRecord {
+    pub stage: usize,
+    pub iteration: usize,
+    pub refraction: f64,
+    pub silhouette: f64,
+    pub smoothness: f64,
+    pub total: f64,
+}
+
+/// Figures of one stage.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct StageReport {
+    pub stage: usize,
+    pub edge_mm: f64,
+    pub vertices: usize,
+    pub faces: usize,
+    pub seconds: f64,
+    pub refraction_rays_used: usize,
+    pub refraction_drops: Drops,
+    pub contour_edges_used: usize,
+    /// Faces of (numerically) zero area at the end of the stage (the next remesh removes them).
+    pub degenerate_faces: usize,
+    pub last: IterationRecord,
+}
+
+/// The state saved after every stage.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Checkpoint {
+    pub settings: Settings,
+    /// Bounding-box diagonal of the initial mesh (mm): the unit of the edge schedule.
+    pub diagonal_mm: f64,
+    pub stages_done: usize,
+    pub history: Vec<IterationRecord>,
+    pub stages: Vec<StageReport>,
+}
+
+/// File names in the output folder.
+pub fn stage_path(out: &Path, s: usize) -> PathBuf {
+    out.join(format!("stage_{s:02}.ply"))
+}
+
+/// The checkpoint of a run in `out`.
+pub fn checkpoint_path(out: &Path) -> PathBuf {
+    out.join("checkpoint.json")
+}
+
+/// Progress callbacks of [`run`].
+pub trait Progress {
+    fn stage_start(
+        &self,
+        stage: usize,
+        stages: usize,
+        edge_mm: f64,
+        faces: usize,
+        iterations: usize,
+    );
+    fn iteration(&self, record: &IterationRecord);
+    fn stage_end(&self, report: &StageReport);
+}
+
+/// Runs (or, with `resume`, continues) a reconstruction into `out` from `init` (not needed when
+/// resuming); `stop` set (Ctrl-C) ends it after the current stage's checkpoint. Returns the final
+/// checkpoint and mesh.
+pub fn run(
+    inputs: &Inputs,
+    init: Option<&TriMesh>,
+    settings: &Settings,
+    out: &Path,
+    resume: bool,
+    progress: &dyn Progress,
+    stop: &AtomicBool,
+) -> Result<(Checkpoint, TriMesh)> {
+    settings.check().map_err(anyhow::Error::msg)?;
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let (mut ck, mut mesh) = if checkpoint_path(out).is_file() {
+        if !resume {
+            bail!(
+                "{} holds a run already: continue it with --resume, or choose another output folder",
+                out.display()
+            );
+        }
+        let text = std::fs::read_to_string(checkpoint_path(out))?;
+        let ck: Checkpoint = serde_json::from_str(&text).with_context(|| {
+            format!(
+                "{}: not a glasscan checkpoint",
+                checkpoint_path(out).display()
+            )
+        })?;
+        if ck.settings != *settings {
+            bail!(
+                "--resume: the settings differ from the run in {} (its settings are in checkpoint.json)",
+                out.display()
+            );
+        }
+        let mesh = read_mesh(&stage_path(out, ck.stages_done - 1))?;
+        (ck, mesh)
+    } else {
+        let Some(init) = init else {
+            bail!("no initial mesh and no checkpoint in {}", out.display());
+        };
+        (
+            Checkpoint {
+                settings: settings.clone(),
+                diagonal_mm: init.bbox_diagonal(),
+                stages_done: 0,
+                history: Vec::new(),
+                stages: Vec::new(),
+            },
+            init.clone(),
+        )
+    };
+    while ck.stages_done < settings.stages {
+        let s = ck.stages_done;
+        let t0 = Instant::now();
+        let edge_mm = settings.edge_mm(s, ck.diagonal_mm);
+        let opts = RemeshOptions {
+            iterations: settings.remesh_iterations,
+            ..RemeshOptions::uniform(edge_mm)
+        };
+        mesh = remesh(&mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
+        progress.stage_start(
+            s,
+            settings.stages,
+            edge_mm,
+            mesh.faces.len(),
+            settings.iterations,
+        );
+        let report = run_stage(
+            inputs,
+            &mut mesh,
+            settings,
+            s,
+            edge_mm,
+            &mut ck.history,
+            progress,
+        )?;
+        let report = StageReport {
+            seconds: t0.elapsed().as_secs_f64(),
+            ..report
+        };
+        write_mesh(&stage_path(out, s), &mesh)?;
+        progress.stage_end(&report);
+        ck.stages.push(report);
+        ck.stages_done += 1;
+        write_atomic(&checkpoint_path(out), |w| {
+            serde_json::to_writer(&mut *w, &ck)?;
+            Ok(())
+        })
+        .with_context(|| format!("cannot write {}", checkpoint_path(out).display()))?;
+        if stop.load(Ordering::SeqCst) && ck.stages_done < settings.stages {
+            bail!("stopped after stage {s} (checkpoint saved): continue with --resume",);
+        }
+    }
+    Ok((ck, mesh))
+}
+
+/// The iterations of stage `s` on `mesh` (moved in place).
+fn run_stage(
+    inputs: &Inputs,
+    mesh: &mut TriMesh,
+    settings: &Settings,
+    s: usize,
+    edge_mm: f64,
+    history: &mut Vec<IterationRecord>,
+    progress: &dyn Progress,
+) -> Result<StageReport> {
+    let mut surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Refit)?;
+    let edges = mesh.interior_edges();
+    let mut stepper = Stepper::new(&settings.optimizer, mesh, s, settings.stages, edge_mm)?;
+    let rs = RefractionSettings {
+        ior: inputs.ior,
+        ior_air: IOR_AIR,
+        max_refractions: settings.max_refractions,
+        normals: settings.normals,
+        form: settings.residual,
+        robust: settings.robust,
+    };
+    let nv = mesh.positions.len();
+    let (mut used, mut drops, mut contour) = (0, Drops::default(), 0);
+    let mut last = IterationRecord::default();
+    for it in 0..settings.iterations {
+        let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ ((s as u64) << 40) ^ it as u64);
+        let vn = (settings.normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
+        // Refraction.
+        let mut acc = Accumulator::new(nv, vn.is_some());
+        let k = settings.refraction_views.min(inputs.targets.len());
+        for v in sample(&mut rng, inputs.targets.len(), k) {
+            let view = &inputs.targets[v];
+            let offset = rng.random_range(0..settings.pixel_stride);
+            let sub = ViewTargets {
+                pixels: view
+                    .pixels
+                    .iter()
+                    .skip(offset)
+                    .step_by(settings.pixel_stride)
+                    .copied()
+                    .collect(),
+                ..view.clone_empty()
+            };
+            add_view(&surface, mesh, vn.as_deref(), &rs, &sub, &mut acc)?;
+        }
+        let (r_used, r_loss, r_drops) = (acc.used, acc.loss, acc.drops);
+        let g_r = acc.finish(mesh);
+        used += r_used;
+        drops.add(&r_drops);
+        // Silhouette.
+        let mut acc_s = Accumulator::new(nv, false);
+        let k = settings.silhouette_views.min(inputs.silhouettes.len());
+        if settings.weight_silhouette > 0.0 {
+            for v in sample(&mut rng, inputs.silhouettes.len(), k) {
+                silhouette::add_view(
+                    mesh,
+                    &edges,
+                    &inputs.silhouettes[v],
+                    surface.scene(),
+                    settings.silhouette,
+                    &mut acc_s,
+                )?;
+            }
+        }
+        contour += acc_s.used;
+        // Smoothness.
+        let mut acc_m = Accumulator::new(nv, false);
+        add_smoothness(mesh, &edges, settings.smoothness, &mut acc_m);
+        let mean = |loss: f64, n: usize| if n > 0 { loss / n as f64 } else { 0.0 };
+        let (wr, ws, wm) = (
+            settings.weight_refraction / r_used.max(1) as f64,
+            settings.weight_silhouette / acc_s.used.max(1) as f64,
+            settings.weight_smoothness / acc_m.used.max(1) as f64,
+        );
+        last = IterationRecord {
+            stage: s,
+            iteration: it,
+            refraction: settings.weight_refraction * mean(r_loss, r_used),
+            silhouette: settings.weight_silhouette * mean(acc_s.loss, acc_s.used),
+            smoothness: settings.weight_smoothness * mean(acc_m.loss, acc_m.used),
+            total: 0.0,
+        };
+        last.total = last.refraction + last.silhouette + last.smoothness;
+        let grad: Vec<V3> = g_r
+            .iter()
+            .zip(&acc_s.grad)
+            .zip(&acc_m.grad)
+            .map(|((a, b), c)| a * wr + b * ws + c * wm)
+            .collect();
+        history.push(last);
+        progress.iteration(&last);
+        let next = stepper.step(&mesh.positions, &grad);
+        if let Some(bad) = next.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+            bail!("stage {s}, iteration {it}: vertex {bad} became non-finite (internal error; the last checkpoint is intact)");
+        }
+        surface.update_positions(&next)?;
+        mesh.positions = next;
+    }
+    let report = validate(mesh);
+    let fatal: Vec<String> = report
+        .defects
+        .iter()
+        .filter(|d| !matches!(d, Defect::Degenerate { .. }))
+        .map(|d| d.to_string())
+        .collect();
+    if !fatal.is_empty() {
+        bail!(
+            "stage {s}: the mesh is no longer a valid surface: {}",
+            fatal.join("; ")
+        );
+    }
+    let degenerate_faces = report
+        .defects
+        .iter()
+        .map(|d| match d {
+            Defect::Degenerate { count, .. } => *count,
+            _ => 0,
+        })
+        .sum();
+    Ok(StageReport {
+        stage: s,
+        edge_mm,
+        vertices: mesh.positions.len(),
+        faces: mesh.faces.len(),
+        seconds: 0.0,
+        refraction_rays_used: used,
+        refraction_drops: drops,
+        contour_edges_used: contour,
+        degenerate_faces,
+        last,
+    })
+}
+
+impl ViewTargets {
+    /// The same view without pixels.
+    fn clone_empty(&self) -> Self {
+        Self {
+            view: self.view,
+            eye: self.eye,
+            monitor_point: self.monitor_point,
+            monitor_normal: self.monitor_normal,
+            pixels: Vec::new(),
+        }
+    }
+}
+
+/// Loads the decoded targets and silhouettes of `views`.
+pub fn load_inputs(scan: &crate::scan::Scan, views: &[usize]) -> Result<(Inputs, Vec<String>)> {
+    let (silhouettes, mut warnings) = crate::hull::silhouettes(scan, views)?;
+    let (targets, skipped) = crate::loss::targets::scan_targets(scan, views)?;
+    if targets.is_empty() {
+        bail!("no decoded view to reconstruct from");
+    }
+    let decoded: usize = targets.iter().map(|t| t.pixels.len()).sum();
+    if decoded == 0 {
+        bail!("no object pixel has a decoded monitor point: check the decode (decoded/preview/)");
+    }
+    warnings.extend(
+        skipped
+            .iter()
+            .map(|k| format!("view {k}: no refraction data (decode skipped it)")),
+    );
+    Ok((
+        Inputs {
+            ior: scan.config.ior,
+            targets,
+            silhouettes,
+        },
+        warnings,
+    ))
+}
