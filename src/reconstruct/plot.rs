@@ -9,11 +9,14 @@ use opencv::imgproc::{line, put_text, FONT_HERSHEY_SIMPLEX, LINE_AA};
 use super::IterationRecord;
 use crate::util::image::write_png;
 
+/// A plotted term: name, value, colour (BGR).
+type Term = (&'static str, fn(&IterationRecord) -> f64, Scalar);
+
 /// Draws the weighted term means of `history` (one point per iteration) into a PNG.
 pub fn loss_plot(path: &Path, history: &[IterationRecord]) -> Result<()> {
     let (w, h, margin) = (900, 520, 60);
     let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC3, Scalar::all(255.0))?;
-    let terms: [(&str, fn(&IterationRecord) -> f64, Scalar); 4] = [
+    let terms: [Term; 4] = [
         ("total", |r| r.total, Scalar::new(0.0, 0.0, 0.0, 0.0)),
         (
             "refraction",
