@@ -119,7 +119,7 @@ pub fn loss_plot(path: &Path, history: &[IterationRecord]) -> Result<()> {
         put_text(
             &mut img,
             name,
-            Point::new(w - margin - 110, margin + 18 * k as i32 + 10),
+            Point::new(margin + 130 * k as i32, margin - 20),
             FONT_HERSHEY_SIMPLEX,
             0.5,
             *colour,
