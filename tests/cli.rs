@@ -320,3 +320,29 @@ fn patterns_writes_opencvs_sequence_with_an_order_file() {
     ]);
     assert_eq!(bad.status.code(), Some(1), "{}", stderr(&bad));
 }
+
+#[test]
+fn demo_runs_the_main_job_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let o = glasscan(&["demo", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in [
+        "object.ply",
+        "scan/scan.toml",
+        "scan/decoded/view_023_monitor.png",
+        "hull.ply",
+        "reconstruction/result.ply",
+        "reconstruction/loss.png",
+        "eval.json",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    let eval: serde_json::Value =
+        serde_json::from_str(&fs::read_to_string(out.join("eval.json")).unwrap()).unwrap();
+    for k in ["hull", "reconstruction"] {
+        let a = eval[k]["accuracy_mm"].as_f64().unwrap();
+        assert!(a.is_finite() && a > 0.0 && a < 5.0, "{k}: {a}");
+    }
+    assert!(stdout(&o).contains("reconstruction   accuracy"));
+}

@@ -1,19 +1,25 @@
-//! `glasscan demo`: the zero-setup first run on a built-in object. For now it exercises what is
-//! built end to end: make a pebble-like glass object, write and re-read it, validate it, evaluate
-//! a coarser tessellation of it against it, benchmark ray tracing on it, and simulate a scan of it.
+//! `glasscan demo`: the main job end to end on a built-in glass object: simulate a scan with
+//! captures, decode it, carve the visual hull, reconstruct with the `fast` preset, and evaluate
+//! both against the truth.
 
 use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use indicatif::ProgressBar;
 use nalgebra::Vector3;
 
-use crate::bench::trace::{self as trace_bench, TraceBenchOptions};
-use crate::eval::{evaluate, EvalOptions};
-use crate::mesh::io::{read_mesh, write_mesh};
+use super::reconstruct::Bars;
+use crate::decode::{decode_scan, DecodeOptions};
+use crate::eval::{evaluate, EvalOptions, EvalReport};
+use crate::hull::{visual_hull, HullOptions};
+use crate::mesh::io::write_mesh;
 use crate::mesh::shapes::ellipsoid;
-use crate::mesh::validate::{ensure_valid, validate};
+use crate::reconstruct::config::Settings;
+use crate::reconstruct::{self, load_inputs};
+use crate::scan::Scan;
 use crate::simulate::{simulate, SimulateOptions};
 
 #[derive(Args, Debug)]
@@ -26,80 +32,120 @@ pub struct DemoArgs {
     pub seed: u64,
 }
 
+fn line(name: &str, e: &EvalReport) -> String {
+    let f = |t: f64| {
+        e.fscores
+            .iter()
+            .find(|f| f.threshold_mm == t)
+            .map_or(f64::NAN, |f| f.fscore)
+    };
+    format!(
+        "{name:<16} accuracy {:.3} mm  completeness {:.3} mm  F@0.5mm {:.3}  F@1mm {:.3}",
+        e.accuracy_mm,
+        e.completeness_mm,
+        f(0.5),
+        f(1.0)
+    )
+}
+
 pub fn run(args: &DemoArgs) -> Result<()> {
     let t0 = Instant::now();
+    if args.out.exists() {
+        std::fs::remove_dir_all(&args.out)
+            .with_context(|| format!("cannot clear the demo folder {}", args.out.display()))?;
+    }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
-    let radii = Vector3::new(40.0, 30.0, 25.0);
 
-    outln!("== 1. a built-in object: an ellipsoidal pebble, semi-axes 40 × 30 × 25 mm");
-    let object_path = args.out.join("object.ply");
-    write_mesh(&object_path, &ellipsoid(radii, 6))?;
-    let object = read_mesh(&object_path)?;
-    let report = ensure_valid(&object).context("the built-in object is invalid")?;
-    out!("{}", super::info::describe(&object_path, &object, &report));
-
-    outln!("\n== 2. evaluation: a 16× coarser tessellation of the same pebble against it");
-    let coarse_path = args.out.join("coarse.obj");
-    write_mesh(&coarse_path, &ellipsoid(radii, 4))?;
-    let coarse = read_mesh(&coarse_path)?;
-    outln!(
-        "coarse           {} ({} faces, {})",
-        coarse_path.display(),
-        coarse.faces.len(),
-        if validate(&coarse).is_valid() {
-            "valid"
-        } else {
-            "INVALID"
+    outln!("== 1. a built-in glass object: a three-lobed pebble with a dimple no silhouette shows, about 85 × 60 × 55 mm, IOR 1.4723");
+    let mut object = ellipsoid(Vector3::new(40.0, 30.0, 25.0), 5);
+    for p in &mut object.positions {
+        // Smooth lobes around the vertical axis, fading towards the poles.
+        let lobe = 1.0 + 0.08 * (3.0 * p.z.atan2(p.x)).sin() * (1.0 - (p.y / 30.0).powi(2));
+        p.x *= lobe;
+        p.z *= lobe;
+        // A dimple in the front face.
+        if p.z > 0.0 {
+            p.z *= 1.0 - 0.3 * (-(p.x * p.x + p.y * p.y) / 225.0).exp();
         }
-    );
-    let eval_opts = EvalOptions {
-        samples: 200_000,
-        seed: args.seed,
-        ..Default::default()
-    };
-    let metrics = evaluate(&coarse, &object, &eval_opts)?;
-    out!("{}", super::eval::table(&metrics, args.seed));
-    super::write_json(&args.out.join("eval.json"), &metrics.to_json())?;
+    }
+    write_mesh(&args.out.join("object.ply"), &object)?;
 
-    outln!("\n== 3. ray tracing throughput on the pebble");
-    let bench_opts = TraceBenchOptions {
-        min_seconds: 0.5,
-        seed: args.seed,
-        ..Default::default()
-    };
-    let bench = trace_bench::run(&object, &bench_opts)?;
-    out!(
-        "{}",
-        super::bench::table(&bench, bench_opts.width, bench_opts.height)
-    );
-
-    outln!("\n== 4. a simulated scan of the pebble: 8 views, 640×480, captures and ground truth");
+    outln!("== 2. simulate a scan: 24 views, 640×480, 4 samples per pixel, Gray-code captures");
+    let scan_dir = args.out.join("scan");
     let sim = SimulateOptions {
-        views: 8,
+        views: 24,
         width: 640,
         height: 480,
+        spp: 4,
         seed: args.seed,
         ..Default::default()
     };
-    let scan_dir = args.out.join("scan");
-    let r = simulate(&object, &scan_dir, &sim, |_| ())?;
+    let t = Instant::now();
+    simulate(&object, &scan_dir, &sim, |_| ())?;
+    outln!("   {:.1} s", t.elapsed().as_secs_f64());
+
+    outln!("== 3. decode the captures");
+    let t = Instant::now();
+    let scan = Scan::open(&scan_dir)?;
+    let views: Vec<usize> = (0..sim.views).collect();
+    decode_scan(&scan, &views, &DecodeOptions::default(), |_| ())?;
+    outln!("   {:.1} s", t.elapsed().as_secs_f64());
+
+    outln!("== 4. visual hull (1 mm voxels)");
+    let t = Instant::now();
+    let (inputs, warnings) = load_inputs(&scan, &views)?;
+    for w in &warnings {
+        eprintln!("warning: {w}");
+    }
+    let (hull, _) = visual_hull(
+        &inputs.silhouettes,
+        &HullOptions::default(),
+        &ProgressBar::hidden(),
+    )?;
+    write_mesh(&args.out.join("hull.ply"), &hull)?;
     outln!(
-        "object pixels {}: {:.1} % reach the monitor through exactly 2 refractions, {:.1} % through 4+, {:.1} % end in total internal reflection, {:.1} % miss the monitor",
-        r.object_pixels,
-        100.0 * r.two_refractions,
-        100.0 * r.more_refractions,
-        100.0 * r.total_internal_reflection,
-        100.0 * r.missed_monitor
-    );
-    outln!(
-        "a camera pixel sees {:.1} monitor pixels through the glass (median), {:.1} directly",
-        r.median_footprint_px,
-        r.direct_footprint_px
+        "   {} faces, {:.1} s",
+        hull.faces.len(),
+        t.elapsed().as_secs_f64()
     );
 
+    outln!("== 5. reconstruct (preset fast)");
+    let t = Instant::now();
+    let mut settings = Settings::preset("fast").expect("a built-in preset");
+    settings.seed = args.seed;
+    let bars = Bars::new();
+    let rec = args.out.join("reconstruction");
+    let (ck, result) = reconstruct::run(
+        &inputs,
+        Some(&hull),
+        &settings,
+        &rec,
+        false,
+        &bars,
+        &AtomicBool::new(false),
+    )?;
+    bars.bar.finish_and_clear();
+    write_mesh(&rec.join("result.ply"), &result)?;
+    crate::reconstruct::plot::loss_plot(&rec.join("loss.png"), &ck.history)?;
+    outln!("   {:.1} s", t.elapsed().as_secs_f64());
+
+    outln!("== 6. evaluate against the object as placed in the scan");
+    let truth = crate::mesh::io::read_mesh(&scan_dir.join("ground_truth.ply"))?;
+    let o = EvalOptions {
+        samples: 300_000,
+        seed: args.seed,
+        ..Default::default()
+    };
+    let (eh, er) = (evaluate(&hull, &truth, &o)?, evaluate(&result, &truth, &o)?);
+    outln!("{}", line("visual hull", &eh));
+    outln!("{}", line("reconstruction", &er));
+    super::write_json(
+        &args.out.join("eval.json"),
+        &serde_json::json!({ "hull": eh.to_json(), "reconstruction": er.to_json() }),
+    )?;
     outln!(
-        "\ndemo done in {:.1} s; files in {}: object.ply, coarse.obj, eval.json, scan/",
+        "\ndemo done in {:.1} s; in {}: object.ply, scan/ (captures, decoded/), hull.ply, reconstruction/ (result.ply, stage meshes, loss.png), eval.json",
         t0.elapsed().as_secs_f64(),
         args.out.display()
     );

@@ -49,8 +49,20 @@ pub struct ReconstructArgs {
     pub hull_voxel_mm: f64,
 }
 
-struct Bars {
-    bar: ProgressBar,
+/// A progress bar per stage and a line per finished stage.
+pub(super) struct Bars {
+    pub bar: ProgressBar,
+}
+
+impl Bars {
+    pub fn new() -> Self {
+        Self {
+            bar: ProgressBar::new(0).with_style(
+                ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg} ({eta})")
+                    .expect("static template"),
+            ),
+        }
+    }
 }
 
 impl Progress for Bars {
@@ -151,12 +163,7 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
             eprintln!("\nstopping after this stage's checkpoint (Ctrl-C again to quit now)");
         });
     }
-    let bars = Bars {
-        bar: ProgressBar::new(0).with_style(
-            ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg} ({eta})")
-                .expect("static template"),
-        ),
-    };
+    let bars = Bars::new();
     let (ck, mesh) = reconstruct::run(
         &inputs,
         init.as_ref(),

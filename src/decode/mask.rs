@@ -82,15 +82,28 @@ pub fn raw_mask(
         .collect()
 }
 
-/// Drops small object regions and fills small holes (8-connected), in place.
+/// Drops small object regions and fills holes that are small or thin (at most 2 pixels wide on
+/// average, such as the line where a ray through the lens centre decodes like the background),
+/// in place; 8-connected regions; a background region touching the image border is no hole.
 pub fn clean(mask: &mut [u8], width: i32, height: i32, o: &MaskOptions) -> Result<()> {
-    remove_small(mask, width, height, 255, o.min_component_px)?;
-    remove_small(mask, width, height, 0, o.max_hole_px)?;
+    remove_regions(mask, width, height, 255, |area, _, _, _| {
+        area < o.min_component_px
+    })?;
+    remove_regions(mask, width, height, 0, |area, w, h, border| {
+        !border && (area < o.max_hole_px || area <= 2 * w.max(h))
+    })?;
     Ok(())
 }
 
-/// Sets the regions of value `value` smaller than `min_px` to the other value.
-fn remove_small(mask: &mut [u8], width: i32, height: i32, value: u8, min_px: i32) -> Result<()> {
+/// Sets the regions of value `value` for which `drop(area, width, height, touches_border)`
+/// (pixels) holds to the other value.
+fn remove_regions(
+    mask: &mut [u8],
+    width: i32,
+    height: i32,
+    value: u8,
+    drop: impl Fn(i32, i32, i32, bool) -> bool,
+) -> Result<()> {
     let sel: Vec<u8> = mask
         .iter()
         .map(|&m| if m == value { 255 } else { 0 })
@@ -105,15 +118,20 @@ fn remove_small(mask: &mut [u8], width: i32, height: i32, value: u8, min_px: i32
         8,
         CV_32S,
     )?;
+    use opencv::imgproc::{CC_STAT_AREA, CC_STAT_HEIGHT, CC_STAT_LEFT, CC_STAT_TOP, CC_STAT_WIDTH};
     let small: Vec<bool> = (0..n)
-        .map(|l| {
-            l > 0
-                && *stats
-                    .at_2d::<i32>(l, opencv::imgproc::CC_STAT_AREA)
-                    .unwrap_or(&i32::MAX)
-                    < min_px
+        .map(|l| -> Result<bool> {
+            let st = |k| stats.at_2d::<i32>(l, k).copied();
+            let (x, y, w, h) = (
+                st(CC_STAT_LEFT)?,
+                st(CC_STAT_TOP)?,
+                st(CC_STAT_WIDTH)?,
+                st(CC_STAT_HEIGHT)?,
+            );
+            let border = x == 0 || y == 0 || x + w == width || y + h == height;
+            Ok(l > 0 && drop(st(CC_STAT_AREA)?, w, h, border))
         })
-        .collect();
+        .collect::<Result<_>>()?;
     let labels = labels.data_typed::<i32>()?;
     let other = if value == 255 { 0 } else { 255 };
     for (m, &l) in mask.iter_mut().zip(labels) {

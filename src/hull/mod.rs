@@ -23,7 +23,8 @@ use carve::{carve, CarveStats, Field};
 use silhouette::Silhouette;
 
 /// Components of the carved surface with less than this share of the largest one's volume are
-/// dropped (specks left where thin parts break up at the voxel size).
+/// dropped: specks left where thin parts break up at the voxel size, and cavities carved by holes
+/// in a mask (their volume is negative).
 pub const SPECK_SHARE: f64 = 0.01;
 
 /// Settings of a hull.
@@ -151,10 +152,11 @@ pub fn visual_hull(
     if mc.faces.is_empty() {
         bail!("the hull is empty at --voxel-mm {}: the silhouettes' intersection is thinner than a voxel", o.voxel_mm);
     }
-    ensure_valid(&mc).context("internal error: marching cubes gave an invalid surface")?;
     let mc_faces = mc.faces.len();
-    // Thin parts carved at the voxel size leave specks; they are not part of the object.
+    // Thin parts carved at the voxel size leave specks, and holes in the masks carve closed
+    // cavities (components facing inwards, negative volume); neither is part of the object.
     let (mc, dropped_components) = keep_large_components(&mc, SPECK_SHARE);
+    ensure_valid(&mc).context("internal error: marching cubes gave an invalid surface")?;
     let t2 = Instant::now();
     let mesh = match o.edge_mm {
         Some(h) => {
