@@ -19,6 +19,7 @@ use crate::loss::{Accumulator, Drops};
 use crate::mesh::TriMesh;
 use crate::trace::path::{MeshSurface, NormalModel, Surface, SurfaceHit};
 use crate::trace::{BuildMode, Ray, TraceError};
+use crate::util::median;
 
 /// What [`run`] measured (times are medians over the repeats).
 #[derive(Clone, Debug, Serialize)]
@@ -64,11 +65,6 @@ impl Surface for Recording<'_> {
     fn offset(&self) -> f64 {
         self.inner.offset()
     }
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 /// Measures `repeats` evaluations of the refraction term of `views` on `mesh`.
