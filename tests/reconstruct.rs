@@ -116,62 +116,27 @@ fn bad_input_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
     small_scan(&scan);
-    let out = dir.path().join("out");
-    let err = |o: &Output| String::from_utf8_lossy(&o.stderr).into_owned();
+    let (scan_arg, out) = (scan.to_str().unwrap(), dir.path().join("out"));
     let config = dir.path().join("c.toml");
+    // Runs reconstruct with `extra` arguments and checks for a one-line error containing `needle`.
+    let fails_with = |extra: &[&str], needle: &str| {
+        let mut args = vec!["reconstruct", scan_arg, "-o", out.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        let o = glasscan(&args);
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert!(
+            o.status.code() == Some(1) && err.contains(needle),
+            "{args:?}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{err}");
+    };
+    let with_config = ["--config", config.to_str().unwrap()];
     std::fs::write(&config, "iterationz = 3\n").unwrap();
-    let o = glasscan(&[
-        "reconstruct",
-        scan.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-    ]);
-    assert!(
-        o.status.code() == Some(1) && err(&o).contains("unknown setting 'iterationz'"),
-        "{}",
-        err(&o)
-    );
+    fails_with(&with_config, "unknown setting 'iterationz'");
     std::fs::write(&config, "stages = 0\n").unwrap();
-    let o = glasscan(&[
-        "reconstruct",
-        scan.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--config",
-        config.to_str().unwrap(),
-    ]);
-    assert!(
-        o.status.code() == Some(1) && err(&o).contains("stages"),
-        "{}",
-        err(&o)
-    );
-    let o = glasscan(&[
-        "reconstruct",
-        scan.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--preset",
-        "fastest",
-    ]);
-    assert!(
-        o.status.code() == Some(1) && err(&o).contains("--preset fastest"),
-        "{}",
-        err(&o)
-    );
+    fails_with(&with_config, "stages");
+    fails_with(&["--preset", "fastest"], "--preset fastest");
     // A scan without decoded data.
     std::fs::remove_dir_all(scan.join("decoded")).unwrap();
-    let o = glasscan(&[
-        "reconstruct",
-        scan.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-    ]);
-    assert!(
-        o.status.code() == Some(1) && err(&o).contains("glasscan decode"),
-        "{}",
-        err(&o)
-    );
-    assert!(!err(&o).contains("panicked"));
+    fails_with(&[], "glasscan decode");
 }
