@@ -72,6 +72,19 @@ pub struct ViewTargets {
     pub pixels: Vec<PixelTarget>,
 }
 
+impl ViewTargets {
+    /// The same view without pixels.
+    pub fn clone_empty(&self) -> Self {
+        Self {
+            view: self.view,
+            eye: self.eye,
+            monitor_point: self.monitor_point,
+            monitor_normal: self.monitor_normal,
+            pixels: Vec::new(),
+        }
+    }
+}
+
 /// The path of one pixel recomputed in f64, with what its derivative needs.
 struct Interface {
     tri: [Point3<f64>; 3],

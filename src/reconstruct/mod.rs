@@ -27,7 +27,7 @@ use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::remesh::{remesh, RemeshOptions};
 use crate::mesh::validate::{validate, Defect};
 use crate::mesh::TriMesh;
-use crate::trace::path::{MeshSurface, NormalModel};
+use crate::trace::path::MeshSurface;
 use crate::trace::refract::IOR_AIR;
 use crate::trace::BuildMode;
 use crate::util::atomic::write_atomic;
@@ -227,7 +227,7 @@ fn run_stage(
     let mut last = IterationRecord::default();
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ ((s as u64) << 40) ^ it as u64);
-        let vn = (settings.normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
+        let vn = surface.vertex_normals();
         // Refraction.
         let mut acc = Accumulator::new(nv, vn.is_some());
         let k = settings.refraction_views.min(inputs.targets.len());
@@ -244,7 +244,7 @@ fn run_stage(
                     .collect(),
                 ..view.clone_empty()
             };
-            add_view(&surface, mesh, vn.as_deref(), &rs, &sub, &mut acc)?;
+            add_view(&surface, mesh, vn, &rs, &sub, &mut acc)?;
         }
         let (r_used, r_loss, r_drops) = (acc.used, acc.loss, acc.drops);
         let g_r = acc.finish(mesh);
@@ -332,19 +332,6 @@ fn run_stage(
         degenerate_faces,
         last,
     })
-}
-
-impl ViewTargets {
-    /// The same view without pixels.
-    fn clone_empty(&self) -> Self {
-        Self {
-            view: self.view,
-            eye: self.eye,
-            monitor_point: self.monitor_point,
-            monitor_normal: self.monitor_normal,
-            pixels: Vec::new(),
-        }
-    }
 }
 
 /// Loads the decoded targets and silhouettes of `views`.

@@ -98,6 +98,12 @@ impl MeshSurface {
         &self.mesh
     }
 
+    /// Its unit vertex normals (vertex-normal model only), kept current by
+    /// [`Self::update_positions`].
+    pub fn vertex_normals(&self) -> Option<&[Vector3<f64>]> {
+        self.vertex_normals.as_deref()
+    }
+
     /// The Embree scene holding it.
     pub fn scene(&self) -> &Scene {
         &self.scene
