@@ -14,7 +14,7 @@ use glasscan::loss::{Accumulator, Contributions, DropReason, Robust};
 use glasscan::mesh::shapes::{ellipsoid, icosphere, perturb_radially};
 use glasscan::mesh::TriMesh;
 use glasscan::rig::{Camera, Turntable};
-use glasscan::trace::path::{trace_trails, MeshSurface, NormalModel, PathEnd, PathSettings};
+use glasscan::trace::path::{trace_chunk, MeshSurface, NormalModel, PathEnd, PathSettings, Trail};
 use glasscan::trace::refract::IOR_AIR;
 use glasscan::trace::{BuildMode, Device, Ray, Scene};
 use nalgebra::{Point3, Vector3};
@@ -100,7 +100,8 @@ fn case(
         ior_air: s.ior_air,
         max_refractions: 8,
     };
-    let (paths, trails) = trace_trails(&surface, &[Ray::new(eye, dir)], &ps).unwrap();
+    let mut trails = [Trail::default()];
+    let paths = trace_chunk(&surface, &[Ray::new(eye, dir)], &ps, Some(&mut trails)).unwrap();
     assert_eq!(
         paths[0].end,
         PathEnd::Left,
@@ -324,8 +325,14 @@ fn near_the_critical_angle_the_gradient_holds_and_beyond_it_the_ray_is_dropped()
     // Beyond it: not differentiable (TIR); the tracer ends the path and the gradient refuses it.
     let (mesh, s, eye, dir) = exit_case(critical + 1e-9, ior);
     let surface = MeshSurface::new(&mesh, NormalModel::Face).unwrap();
-    let (paths, trails) =
-        trace_trails(&surface, &[Ray::new(eye, dir)], &PathSettings::new(ior, 8)).unwrap();
+    let mut trails = [Trail::default()];
+    let paths = trace_chunk(
+        &surface,
+        &[Ray::new(eye, dir)],
+        &PathSettings::new(ior, 8),
+        Some(&mut trails),
+    )
+    .unwrap();
     assert_eq!(paths[0].end, PathEnd::TotalInternalReflection);
     let view = ViewTargets {
         view: 0,

@@ -68,22 +68,37 @@ impl Silhouette {
         })
     }
 
-    /// The signed distance image at pixel coordinates (x, y), bilinear between pixel centres
-    /// (clamped to the image), and its gradient (per pixel).
-    pub fn sample_px(&self, x: f64, y: f64) -> (f64, f64, f64) {
+    /// The four pixels around (x, y) (clamped to the image) and the position between them.
+    fn cell(&self, x: f64, y: f64) -> ([f64; 4], f64, f64) {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let (x, y) = (x.clamp(0.0, (w - 1) as f64), y.clamp(0.0, (h - 1) as f64));
         let (x0, y0) = ((x as usize).min(w - 2), (y as usize).min(h - 2));
-        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let at = |i: usize, j: usize| self.sd[j * w + i] as f64;
-        let (a, b, c, d) = (
-            at(x0, y0),
-            at(x0 + 1, y0),
-            at(x0, y0 + 1),
-            at(x0 + 1, y0 + 1),
-        );
         (
-            (1.0 - fy) * ((1.0 - fx) * a + fx * b) + fy * ((1.0 - fx) * c + fx * d),
+            [
+                at(x0, y0),
+                at(x0 + 1, y0),
+                at(x0, y0 + 1),
+                at(x0 + 1, y0 + 1),
+            ],
+            x - x0 as f64,
+            y - y0 as f64,
+        )
+    }
+
+    /// The signed distance image at pixel coordinates (x, y), bilinear between pixel centres
+    /// (clamped to the image).
+    pub fn sd_px(&self, x: f64, y: f64) -> f64 {
+        let (v, fx, fy) = self.cell(x, y);
+        bilinear(&v, fx, fy)
+    }
+
+    /// [`Self::sd_px`] and its gradient (per pixel).
+    pub fn sample_px(&self, x: f64, y: f64) -> (f64, f64, f64) {
+        let (v, fx, fy) = self.cell(x, y);
+        let [a, b, c, d] = v;
+        (
+            bilinear(&v, fx, fy),
             (1.0 - fy) * (b - a) + fy * (d - c),
             (1.0 - fx) * (c - a) + fx * (d - b),
         )
@@ -100,6 +115,11 @@ impl Silhouette {
         let (w, h) = (self.camera.width as f64, self.camera.height as f64);
         let beyond = (px.x - px.x.clamp(0.0, w - 1.0)).hypot(px.y - px.y.clamp(0.0, h - 1.0));
         let px_to_mm = q.z / (0.5 * (self.camera.fx + self.camera.fy));
-        (self.sample_px(px.x, px.y).0 - beyond) * px_to_mm
+        (self.sd_px(px.x, px.y) - beyond) * px_to_mm
     }
+}
+
+/// Bilinear interpolation of the corner values [(0,0), (1,0), (0,1), (1,1)] at (fx, fy).
+fn bilinear(&[a, b, c, d]: &[f64; 4], fx: f64, fy: f64) -> f64 {
+    (1.0 - fy) * ((1.0 - fx) * a + fx * b) + fy * ((1.0 - fx) * c + fx * d)
 }

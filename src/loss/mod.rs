@@ -152,7 +152,8 @@ impl Accumulator {
             self.used += c.used;
             self.drops.add(&c.drops);
         }
-        let parts = 4 * rayon::current_num_threads();
+        // One part per thread: each part reads every entry, so more parts only add reading.
+        let parts = rayon::current_num_threads();
         let scatter = |target: &mut [V3], entries: fn(&Contributions) -> &[(u32, V3)]| {
             let block = target.len().div_ceil(parts).max(1);
             target

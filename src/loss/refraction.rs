@@ -2,7 +2,7 @@
 //! modelled path through the current mesh should reach Q.
 //!
 //! Per view, Embree traces every pixel ray through the mesh in batches, recording the triangles
-//! it refracts at ([`trace_trails`]). Then, per pixel and in parallel, the path is recomputed in
+//! it refracts at ([`trace_chunk`]). Then, per pixel and in parallel, the path is recomputed in
 //! f64 from those triangles (ray–plane hits, normals, Snell) and differentiated backwards by hand
 //! ([`super::diff`]), into per-thread gradient buffers that are summed at the end. Pixels whose
 //! modelled path cannot be compared (no hit, TIR, wrong number of refractions, missing the

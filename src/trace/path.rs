@@ -242,24 +242,6 @@ pub fn trace_paths(
     Ok(chunks.concat())
 }
 
-/// As [`trace_paths`], also recording which elements each path refracted at;
-/// `settings.max_refractions` must not exceed [`MAX_TRAIL`].
-pub fn trace_trails(
-    surface: &dyn Surface,
-    rays: &[Ray],
-    settings: &PathSettings,
-) -> Result<(Vec<Path>, Vec<Trail>), TraceError> {
-    let chunks: Vec<(Vec<Path>, Vec<Trail>)> = rays
-        .par_chunks(TRACE_CHUNK)
-        .map(|c| {
-            let mut trails = vec![Trail::default(); c.len()];
-            trace_chunk(surface, c, settings, Some(&mut trails)).map(|p| (p, trails))
-        })
-        .collect::<Result<_, _>>()?;
-    let (paths, trails): (Vec<Vec<Path>>, Vec<Vec<Trail>>) = chunks.into_iter().unzip();
-    Ok((paths.concat(), trails.concat()))
-}
-
 /// Traces `rays` on the calling thread, one interface at a time for all of them (the first
 /// batch, the caller's rays in their order, in packets); records the elements refracted at into
 /// `trails` if given (then `settings.max_refractions` must not exceed [`MAX_TRAIL`]).
