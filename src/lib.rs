@@ -5,6 +5,7 @@
 //! [`cli`]; every stage lives in its own module.
 
 pub mod bench;
+pub mod calibrate;
 pub mod cli;
 pub mod decode;
 pub mod eval;

@@ -102,9 +102,9 @@ pub enum ScanError {
     },
 }
 
-impl Scan {
-    /// Loads `dir/scan.toml` and the calibration files it names, and checks that they agree.
-    pub fn open(dir: &Path) -> Result<Self, ScanError> {
+impl ScanConfig {
+    /// Reads and checks `dir/scan.toml` (not the calibration files it names).
+    pub fn load(dir: &Path) -> Result<Self, ScanError> {
         let path = dir.join("scan.toml");
         let text = std::fs::read_to_string(&path).map_err(|cause| ScanError::Read {
             path: path.clone(),
@@ -133,6 +133,35 @@ impl Scan {
                 "views.angles_deg must list at least one finite angle".into()
             ));
         }
+        if let Some(p) = config.patterns.phase_shift {
+            if p.steps < 3 || p.period_px < 4 {
+                return Err(bad(format!(
+                    "phase_shift needs steps ≥ 3 and period_px ≥ 4, got {} and {}",
+                    p.steps, p.period_px
+                )));
+            }
+        }
+        Ok(config)
+    }
+
+    /// The pattern set.
+    pub fn graycode(&self) -> GrayCode {
+        GrayCode {
+            width: self.patterns.width,
+            height: self.patterns.height,
+        }
+    }
+}
+
+impl Scan {
+    /// Loads `dir/scan.toml` and the calibration files it names, and checks that they agree.
+    pub fn open(dir: &Path) -> Result<Self, ScanError> {
+        let config = ScanConfig::load(dir)?;
+        let path = dir.join("scan.toml");
+        let bad = |msg: String| ScanError::Config {
+            path: path.clone(),
+            msg,
+        };
         let c = &config.calibration;
         let camera = calib_io::read_camera(&dir.join(&c.camera))?;
         let screen = calib_io::read_screen(&dir.join(&c.screen))?;
@@ -146,14 +175,6 @@ impl Scan {
                 screen.width_px,
                 screen.height_px
             )));
-        }
-        if let Some(p) = config.patterns.phase_shift {
-            if p.steps < 3 || p.period_px < 4 {
-                return Err(bad(format!(
-                    "phase_shift needs steps ≥ 3 and period_px ≥ 4, got {} and {}",
-                    p.steps, p.period_px
-                )));
-            }
         }
         let turntable = Turntable {
             axis_point,
@@ -177,7 +198,7 @@ impl Scan {
     /// Writes `scan.toml` and the calibration files into `self.dir` (atomically each).
     pub fn save(&self) -> Result<(), ScanError> {
         let c = &self.config.calibration;
-        calib_io::write_camera(&self.dir.join(&c.camera), &self.camera, 0.0)?;
+        calib_io::write_camera(&self.dir.join(&c.camera), &self.camera, 0.0, None)?;
         calib_io::write_screen(&self.dir.join(&c.screen), &self.screen)?;
         calib_io::write_turntable_axis(
             &self.dir.join(&c.turntable),
@@ -196,10 +217,7 @@ impl Scan {
 
     /// The pattern set.
     pub fn graycode(&self) -> GrayCode {
-        GrayCode {
-            width: self.config.patterns.width,
-            height: self.config.patterns.height,
-        }
+        self.config.graycode()
     }
 
     /// World → camera transform of every view.
@@ -214,6 +232,11 @@ impl Scan {
 
     /// Folder of the background captures.
     pub fn background_dir(&self) -> PathBuf {
-        self.dir.join("captures").join("background")
+        background_dir(&self.dir)
     }
+}
+
+/// Folder of the background captures of the scan folder `dir`.
+pub fn background_dir(dir: &Path) -> PathBuf {
+    dir.join("captures").join("background")
 }

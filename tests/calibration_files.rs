@@ -88,7 +88,7 @@ fn files_written_here_load_in_opencv_and_back() {
     let dir = tempfile::tempdir().unwrap();
     let cam = opencv_sample_camera();
     let p = dir.path().join("camera.yml");
-    write_camera(&p, &cam, 0.25).unwrap();
+    write_camera(&p, &cam, 0.25, None).unwrap();
     assert!(fs::read_to_string(&p).unwrap().starts_with("%YAML:1.0"));
     // OpenCV reads what we wrote.
     let fs_cv = FileStorage::new(&p, opencv::core::FileStorage_READ, "").unwrap();

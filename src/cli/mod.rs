@@ -19,6 +19,7 @@ macro_rules! outln {
 }
 
 mod bench;
+mod calibrate;
 mod decode;
 mod demo;
 mod eval;
@@ -51,6 +52,9 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Decode a scan's captures: silhouettes and monitor points per view.
     Decode(decode::DecodeArgs),
+    /// Calibrate the rig: camera, monitor pose, turntable axis.
+    #[command(subcommand)]
+    Calibrate(calibrate::CalibrateCommand),
     /// The Gray-code images to show on the monitor, in OpenCV's order.
     Patterns(patterns::PatternsArgs),
     /// A synthetic scan of a mesh: calibration, captures and ground truth.
@@ -94,6 +98,7 @@ pub fn run() -> Result<()> {
         Command::Info(a) => info::run(&a),
         Command::Eval(a) => eval::run(&a),
         Command::Decode(a) => decode::run(&a),
+        Command::Calibrate(c) => calibrate::run(&c),
         Command::Patterns(a) => patterns::run(&a),
         Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),

@@ -71,6 +71,13 @@ pub struct SimulateArgs {
     /// Also render N-step phase-shift images after the Gray code.
     #[arg(long = "phase-shift")]
     pub phase_steps: Option<u32>,
+    /// Lens distortion of the camera, OpenCV's k1,k2,p1,p2,k3.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0; 5])]
+    pub distortion: Vec<f64>,
+    /// Also render calibration images with known truth (chessboards for the camera and the
+    /// turntable, the background capture for the monitor) under SCAN/calibration/.
+    #[arg(long = "calibration-images")]
+    pub calibration_images: bool,
     /// Period of the phase-shift sinusoid, monitor pixels.
     #[arg(long = "period-px", default_value_t = 64, requires = "phase_steps")]
     pub period_px: u32,
@@ -103,30 +110,35 @@ fn parse_normals(s: &str) -> Result<NormalModel, String> {
 
 pub fn run(a: &SimulateArgs) -> Result<()> {
     let mesh = read_mesh(&a.mesh)?;
-    let o = SimulateOptions {
-        views: a.views,
-        width: a.size.0,
-        height: a.size.1,
-        ior: a.ior,
-        screen_width: a.screen.0,
-        screen_height: a.screen.1,
-        pitch_mm: a.pitch_mm,
-        spp: a.spp,
-        noise: a.noise,
-        blur_px: a.blur_px,
-        max_refractions: a.max_refractions,
-        decoded_only: a.decoded_only,
-        seed: a.seed,
-        camera_distance_mm: a.camera_distance_mm,
-        screen_distance_mm: a.screen_distance_mm,
-        fill: a.fill,
-        normals: a.normals,
-        fresnel: !a.no_fresnel,
-        phase_shift: a.phase_steps.map(|steps| PhaseShift {
-            steps,
-            period_px: a.period_px,
-        }),
-    };
+    let o =
+        SimulateOptions {
+            views: a.views,
+            width: a.size.0,
+            height: a.size.1,
+            ior: a.ior,
+            screen_width: a.screen.0,
+            screen_height: a.screen.1,
+            pitch_mm: a.pitch_mm,
+            spp: a.spp,
+            noise: a.noise,
+            blur_px: a.blur_px,
+            max_refractions: a.max_refractions,
+            decoded_only: a.decoded_only,
+            seed: a.seed,
+            camera_distance_mm: a.camera_distance_mm,
+            screen_distance_mm: a.screen_distance_mm,
+            fill: a.fill,
+            normals: a.normals,
+            fresnel: !a.no_fresnel,
+            phase_shift: a.phase_steps.map(|steps| PhaseShift {
+                steps,
+                period_px: a.period_px,
+            }),
+            distortion: a.distortion.clone().try_into().map_err(|_| {
+                anyhow::anyhow!("--distortion takes 5 coefficients: k1,k2,p1,p2,k3")
+            })?,
+            calibration_images: a.calibration_images,
+        };
     let bar = ProgressBar::new(a.views as u64);
     bar.set_style(
         ProgressStyle::with_template("simulate [{bar:40}] {pos}/{len} views ({eta})")
@@ -167,6 +179,12 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
         ("grazing shading normal", r.grazing_normal),
     ] {
         outln!("  {:>6.2} %  {what}", 100.0 * share);
+    }
+    if a.calibration_images {
+        outln!(
+            "calibration images and the commands that use them: {}",
+            a.out.join("calibration").join("setup.json").display()
+        );
     }
     outln!(
         "median footprint of a camera pixel on the monitor: {:.1} monitor pixels through the glass (2 refractions), {:.2} directly",

@@ -105,13 +105,11 @@ impl Settings {
                 ..base
             },
             "accurate" => Settings {
-                stages: 4,
+                stages: 5,
                 final_edge: 1.0 / 350.0,
-                iterations: 250,
+                iterations: 300,
                 refraction_views: 4,
                 silhouette_views: 8,
-                pixel_stride: 1,
-                max_refractions: 4,
                 remesh_iterations: 10,
                 ..base
             },

@@ -179,15 +179,49 @@ pub fn read_camera(path: &Path) -> Result<Camera, CalibError> {
     })
 }
 
-/// Writes a camera file with the keys of OpenCV's calibration sample.
+/// What OpenCV's calibration sample records about a calibration beyond the camera itself.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraRecord {
+    /// Images used.
+    pub nframes: usize,
+    /// Inner corners per board row and column.
+    pub board_width: u32,
+    pub board_height: u32,
+    /// Board square size (the unit of the extrinsic translations; glasscan uses mm).
+    pub square_size: f64,
+    /// fx/fy when it was held fixed.
+    pub aspect_ratio: Option<f64>,
+    /// OpenCV's calibration flags.
+    pub flags: i32,
+    /// RMS reprojection error per image, pixels.
+    pub per_view_errors: Vec<f64>,
+    /// Per image: rotation vector (3) and translation (3) of the board in the camera frame.
+    pub extrinsics: Vec<[f64; 6]>,
+}
+
+/// Writes a camera file with the keys of OpenCV's calibration sample (in its order), the
+/// calibration's record included when given.
 pub fn write_camera(
     path: &Path,
     c: &Camera,
     avg_reprojection_error: f64,
+    record: Option<&CameraRecord>,
 ) -> Result<(), CalibError> {
     let mut w = Writer::new(path)?;
+    if let Some(r) = record {
+        w.int("nframes", r.nframes as u32)?;
+    }
     w.int("image_width", c.width)?;
     w.int("image_height", c.height)?;
+    if let Some(r) = record {
+        w.int("board_width", r.board_width)?;
+        w.int("board_height", r.board_height)?;
+        w.real("square_size", r.square_size)?;
+        if let Some(a) = r.aspect_ratio {
+            w.real("aspectRatio", a)?;
+        }
+        w.int("flags", r.flags as u32)?;
+    }
     w.matrix(
         "camera_matrix",
         3,
@@ -195,6 +229,15 @@ pub fn write_camera(
     )?;
     w.matrix("distortion_coefficients", 5, &c.dist)?;
     w.real("avg_reprojection_error", avg_reprojection_error)?;
+    if let Some(r) = record {
+        w.matrix(
+            "per_view_reprojection_errors",
+            r.per_view_errors.len(),
+            &r.per_view_errors,
+        )?;
+        let ex: Vec<f64> = r.extrinsics.iter().flatten().copied().collect();
+        w.matrix("extrinsic_parameters", r.extrinsics.len(), &ex)?;
+    }
     w.finish()
 }
 

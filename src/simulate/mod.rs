@@ -3,6 +3,7 @@
 //! ground truth (the placed mesh; per view and pixel the pixel-centre ray's monitor point and
 //! outcome, the silhouette mask, and the footprint of the whole pixel on the monitor).
 
+pub mod calibration;
 pub mod render;
 
 use std::path::Path;
@@ -63,6 +64,10 @@ pub struct SimulateOptions {
     pub fresnel: bool,
     /// Phase-shift images after the Gray code.
     pub phase_shift: Option<PhaseShift>,
+    /// The camera's lens distortion, OpenCV's k1 k2 p1 p2 k3.
+    pub distortion: [f64; 5],
+    /// Also render calibration image sets (see [`calibration`]) and the background capture.
+    pub calibration_images: bool,
 }
 
 impl Default for SimulateOptions {
@@ -87,6 +92,8 @@ impl Default for SimulateOptions {
             normals: NormalModel::Vertex,
             fresnel: true,
             phase_shift: None,
+            distortion: [0.0; 5],
+            calibration_images: false,
         }
     }
 }
@@ -155,7 +162,7 @@ pub fn simulate(
         fy: f,
         cx: (o.width as f64 - 1.0) / 2.0,
         cy: (o.height as f64 - 1.0) / 2.0,
-        dist: [0.0; 5],
+        dist: o.distortion,
     };
     // Monitor: centred on the optical axis, facing the camera, rows downwards like the image.
     let z = d + o.screen_distance_mm;
@@ -246,8 +253,11 @@ pub fn simulate(
         );
     }
     let direct_footprint_px = median(footprints(&background, o.spp, |_| true));
-    if !o.decoded_only {
+    if !o.decoded_only || o.calibration_images {
         write_captures(&scan.background_dir(), &background, o, &code, o.seed ^ 0xb6)?;
+    }
+    if o.calibration_images {
+        calibration::write_calibration_images(&scan, o)?;
     }
     for (k, pose) in poses.iter().enumerate() {
         let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
@@ -324,6 +334,9 @@ fn check_options(o: &SimulateOptions) -> Result<()> {
     }
     if !(o.noise >= 0.0 && o.blur_px >= 0.0) {
         bail!("noise and blur must not be negative");
+    }
+    if o.distortion.iter().any(|d| d.is_nan() || d.abs() >= 1.0) {
+        bail!("distortion coefficients must be finite and below 1 in size");
     }
     Ok(())
 }

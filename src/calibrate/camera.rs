@@ -1,0 +1,189 @@
+//! `calibrate camera`: intrinsics and lens distortion from chessboard images, through OpenCV's
+//! `calibrateCamera` exactly as OpenCV's calibration sample runs it (same corner detection and
+//! refinement, same flags), so that its results and its YAML keys match the sample's.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Result};
+use opencv::core::{
+    Mat, MatTraitConst, MatTraitConstManual, Point2f, Point3f, Size, TermCriteria,
+    TermCriteria_Type, Vector,
+};
+
+use super::board::{Board, BoardImage};
+use crate::rig::calib_io::CameraRecord;
+use crate::rig::Camera;
+
+/// Options of `calibrateCamera`.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CameraOptions {
+    /// fx/fy held at 1 (OpenCV's `CALIB_FIX_ASPECT_RATIO` with aspect ratio 1).
+    pub fix_aspect_ratio: bool,
+    /// p1 = p2 = 0 (`CALIB_ZERO_TANGENT_DIST`).
+    pub zero_tangent: bool,
+    /// k3 = 0 (`CALIB_FIX_K3`): for narrow lenses, whose image corners reach too small a radius
+    /// for the sixth-order term to be told apart from k1 and k2.
+    pub fix_k3: bool,
+}
+
+impl CameraOptions {
+    /// OpenCV's `flags` value for these options.
+    pub fn flags(&self) -> i32 {
+        let mut f = 0;
+        if self.fix_aspect_ratio {
+            f |= opencv::calib3d::CALIB_FIX_ASPECT_RATIO;
+        }
+        if self.zero_tangent {
+            f |= opencv::calib3d::CALIB_ZERO_TANGENT_DIST;
+        }
+        if self.fix_k3 {
+            f |= opencv::calib3d::CALIB_FIX_K3;
+        }
+        f
+    }
+}
+
+/// One image's share of a calibration.
+#[derive(Clone, Debug)]
+pub struct ViewResult {
+    pub path: PathBuf,
+    /// RMS reprojection error of its corners, pixels.
+    pub error_px: f64,
+    /// Flagged: its error exceeds 2.5 × the median view's.
+    pub outlier: bool,
+}
+
+/// A camera calibration: the camera, how well it fits, and the images used and skipped.
+#[derive(Clone, Debug)]
+pub struct CameraCalibration {
+    pub camera: Camera,
+    /// RMS reprojection error over every corner, pixels (OpenCV's `avg_reprojection_error`).
+    pub rms_px: f64,
+    pub views: Vec<ViewResult>,
+    /// Images in which the whole board was not found.
+    pub skipped: Vec<PathBuf>,
+    /// What the YAML file records beyond the camera.
+    pub record: CameraRecord,
+}
+
+/// The smallest number of usable board images.
+pub const MIN_IMAGES: usize = 3;
+
+/// Calibrates from `images` (grey, all `size` = (width, height)).
+pub fn calibrate_camera(
+    images: &[BoardImage],
+    size: (u32, u32),
+    board: &Board,
+    o: &CameraOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<CameraCalibration> {
+    let object: Vector<Point3f> = board
+        .object_points()
+        .iter()
+        .map(|p| Point3f::new(p.x as f32, p.y as f32, p.z as f32))
+        .collect();
+    let mut object_points = Vector::<Vector<Point3f>>::new();
+    let mut image_points = Vector::<Vector<Point2f>>::new();
+    let (mut used, mut skipped) = (Vec::new(), Vec::new());
+    for (i, im) in images.iter().enumerate() {
+        match board.find_corners(&im.image)? {
+            Some(c) => {
+                image_points.push(
+                    c.iter()
+                        .map(|p| Point2f::new(p.x as f32, p.y as f32))
+                        .collect(),
+                );
+                object_points.push(object.clone());
+                used.push(im.path.clone());
+            }
+            None => skipped.push(im.path.clone()),
+        }
+        progress(i);
+    }
+    if used.len() < MIN_IMAGES {
+        bail!(
+            "the {}×{} board was found in {} of {} images; calibration needs at least {MIN_IMAGES} (check --board: it counts inner corners, e.g. 9x6 for a board of 10×7 squares)",
+            board.cols,
+            board.rows,
+            used.len(),
+            images.len()
+        );
+    }
+    // fx/fy = 1 when the aspect ratio is fixed (OpenCV reads only that ratio from it).
+    let mut k = Mat::from_slice_2d(&[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
+    let mut dist = Mat::from_slice(&[0.0f64; 5])?.reshape(1, 5)?.try_clone()?;
+    let (mut rvecs, mut tvecs) = (Vector::<Mat>::new(), Vector::<Mat>::new());
+    let (mut sd_in, mut sd_ex, mut per_view) = (Mat::default(), Mat::default(), Mat::default());
+    let criteria = TermCriteria::new(
+        TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,
+        30,
+        f64::EPSILON,
+    )?;
+    let rms = opencv::calib3d::calibrate_camera_extended(
+        &object_points,
+        &image_points,
+        Size::new(size.0 as i32, size.1 as i32),
+        &mut k,
+        &mut dist,
+        &mut rvecs,
+        &mut tvecs,
+        &mut sd_in,
+        &mut sd_ex,
+        &mut per_view,
+        o.flags(),
+        criteria,
+    )?;
+    let kk: Vec<f64> = k.data_typed::<f64>()?.to_vec();
+    let dd: Vec<f64> = dist.data_typed::<f64>()?.to_vec();
+    let errors: Vec<f64> = per_view.data_typed::<f64>()?.to_vec();
+    if !rms.is_finite() || kk.iter().chain(&dd).any(|v| !v.is_finite()) {
+        bail!("calibration diverged (non-finite result): the board poses may be too similar; vary the tilt between images");
+    }
+    let mut d5 = [0.0; 5];
+    for (d, v) in d5.iter_mut().zip(&dd) {
+        *d = *v;
+    }
+    let camera = Camera {
+        width: size.0,
+        height: size.1,
+        fx: kk[0],
+        fy: kk[4],
+        cx: kk[2],
+        cy: kk[5],
+        dist: d5,
+    };
+    let median = crate::util::median(errors.clone());
+    let views = used
+        .iter()
+        .zip(&errors)
+        .map(|(p, &e)| ViewResult {
+            path: p.clone(),
+            error_px: e,
+            outlier: e > 2.5 * median,
+        })
+        .collect();
+    let extrinsics = rvecs
+        .iter()
+        .zip(tvecs.iter())
+        .map(|(r, t)| -> Result<[f64; 6]> {
+            let (r, t) = (r.data_typed::<f64>()?, t.data_typed::<f64>()?);
+            Ok([r[0], r[1], r[2], t[0], t[1], t[2]])
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(CameraCalibration {
+        camera,
+        rms_px: rms,
+        views,
+        skipped,
+        record: CameraRecord {
+            nframes: used.len(),
+            board_width: board.cols,
+            board_height: board.rows,
+            square_size: board.square_mm,
+            aspect_ratio: o.fix_aspect_ratio.then_some(1.0),
+            flags: o.flags(),
+            per_view_errors: errors,
+            extrinsics,
+        },
+    })
+}

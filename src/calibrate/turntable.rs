@@ -1,0 +1,291 @@
+//! `calibrate turntable`: the rotation axis from a chessboard turned on the turntable, one image
+//! per known angle. Each image's board pose (OpenCV PnP) starts a joint least-squares fit
+//! (Levenberg–Marquardt, in-house): one axis (direction and point), one board pose at angle 0,
+//! and every corner of every image reprojected through the lens model.
+//!
+//! Convention (as [`crate::rig::Turntable`]): at angle θ the board is turned by θ right-handed
+//! about the axis direction. The reported axis point is the one nearest the board's origin at
+//! angle 0 (for a board lying on the platter: the platter's centre at the board's height).
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Result};
+use nalgebra::{
+    DMatrix, DVector, Isometry3, Matrix3, Point2, Point3, Translation3, Unit, UnitQuaternion,
+    Vector3,
+};
+use opencv::core::{Mat, Point2d, Point3d, Vector};
+
+use super::board::{Board, BoardImage};
+use super::{camera_mats, pose_from_vectors};
+use crate::rig::Camera;
+
+/// One image's share of the fit.
+#[derive(Clone, Debug)]
+pub struct TurntableView {
+    pub path: PathBuf,
+    /// The angle given for it, degrees.
+    pub angle_deg: f64,
+    /// Its own board pose's angle about the fitted axis minus the given angle, degrees.
+    pub angle_residual_deg: f64,
+    /// RMS reprojection error of its corners under the joint fit, pixels.
+    pub rms_px: f64,
+}
+
+/// A fitted turntable axis.
+#[derive(Clone, Debug)]
+pub struct TurntableCalibration {
+    /// Camera frame, mm.
+    pub axis_point: Point3<f64>,
+    pub axis_dir: Unit<Vector3<f64>>,
+    /// RMS reprojection error over every corner, pixels.
+    pub rms_px: f64,
+    pub views: Vec<TurntableView>,
+    /// Images in which the board was not found.
+    pub skipped: Vec<PathBuf>,
+}
+
+/// Observed corners of one image.
+struct Observation {
+    theta: f64,
+    corners: Vec<Point2<f64>>,
+    pose: Isometry3<f64>,
+}
+
+/// Rotation by `theta` about the axis through `c` along `d`.
+fn about_axis(d: &Unit<Vector3<f64>>, c: &Point3<f64>, theta: f64) -> Isometry3<f64> {
+    let r = UnitQuaternion::from_axis_angle(d, theta);
+    Isometry3::from_parts(Translation3::from(c.coords - r * c.coords), r)
+}
+
+/// Fits the axis to `images` taken at `angles_deg` (one per image, same order).
+pub fn calibrate_turntable(
+    images: &[BoardImage],
+    angles_deg: &[f64],
+    board: &Board,
+    camera: &Camera,
+) -> Result<TurntableCalibration> {
+    if angles_deg.len() != images.len() {
+        bail!(
+            "{} angles for {} images: give one angle per image, in the images' name order",
+            angles_deg.len(),
+            images.len()
+        );
+    }
+    let object = board.object_points();
+    let object_cv: Vector<Point3d> = object.iter().map(|p| Point3d::new(p.x, p.y, p.z)).collect();
+    let (k, dist) = camera_mats(camera)?;
+    let (mut obs, mut used, mut skipped) = (Vec::new(), Vec::new(), Vec::new());
+    for (im, &a) in images.iter().zip(angles_deg) {
+        let Some(corners) = board.find_corners(&im.image)? else {
+            skipped.push(im.path.clone());
+            continue;
+        };
+        let image_cv: Vector<Point2d> = corners.iter().map(|p| Point2d::new(p.x, p.y)).collect();
+        let (mut rvec, mut tvec) = (Mat::default(), Mat::default());
+        opencv::calib3d::solve_pnp(
+            &object_cv,
+            &image_cv,
+            &k,
+            &dist,
+            &mut rvec,
+            &mut tvec,
+            false,
+            opencv::calib3d::SOLVEPNP_ITERATIVE,
+        )?;
+        obs.push(Observation {
+            theta: a.to_radians(),
+            corners,
+            pose: pose_from_vectors(&rvec, &tvec)?,
+        });
+        used.push((im.path.clone(), a));
+    }
+    if obs.len() < 3 {
+        bail!(
+            "the board was found in {} of {} images; the axis needs at least 3",
+            obs.len(),
+            images.len()
+        );
+    }
+    let (d0, c0) = initial_axis(&obs)?;
+    let base0 = about_axis(&d0, &c0, -obs[0].theta) * obs[0].pose;
+    let fit = Fit {
+        obs: &obs,
+        object: &object,
+        camera,
+        d0,
+        c0,
+        base0,
+    };
+    let x = fit.solve()?;
+    let (d, c, base) = fit.params(&x);
+    // The axis point nearest the board's origin at angle 0.
+    let o = base.translation.vector;
+    let c = c + d.into_inner() * d.dot(&(o - c.coords));
+    let residuals = fit.residuals(&x);
+    let per_image = 2 * object.len();
+    let views = used
+        .into_iter()
+        .zip(&obs)
+        .zip(residuals.as_slice().chunks(per_image))
+        .map(|(((path, angle_deg), ob), r)| {
+            let rel = ob.pose.rotation * base.rotation.inverse();
+            let v = rel.scaled_axis();
+            let measured = v.norm() * v.dot(&d).signum();
+            let diff = (measured.to_degrees() - angle_deg + 180.0).rem_euclid(360.0) - 180.0;
+            TurntableView {
+                path,
+                angle_deg,
+                angle_residual_deg: diff,
+                rms_px: (r.iter().map(|e| e * e).sum::<f64>() / object.len() as f64).sqrt(),
+            }
+        })
+        .collect();
+    Ok(TurntableCalibration {
+        axis_point: c,
+        axis_dir: d,
+        rms_px: (residuals.norm_squared() / (obs.len() * object.len()) as f64).sqrt(),
+        views,
+        skipped,
+    })
+}
+
+/// Axis direction from the relative rotations to the first image, and the axis point from the
+/// relative motions' fixed points (least squares), at the first board origin's height.
+fn initial_axis(obs: &[Observation]) -> Result<(Unit<Vector3<f64>>, Point3<f64>)> {
+    let first = &obs[0];
+    let mut sum = Vector3::zeros();
+    for o in &obs[1..] {
+        let dtheta = o.theta - first.theta;
+        let v = (o.pose.rotation * first.pose.rotation.inverse()).scaled_axis();
+        if dtheta.abs() > 1f64.to_radians() && v.norm() > 1e-3 {
+            sum += v.normalize() * dtheta.signum() * dtheta.abs();
+        }
+    }
+    let Some(d) = Unit::try_new(sum, 1e-9) else {
+        bail!("the board does not turn between the images: give images at angles at least a few degrees apart");
+    };
+    let n = obs.len() - 1;
+    let mut a = DMatrix::zeros(3 * n + 1, 3);
+    let mut b = DVector::zeros(3 * n + 1);
+    for (i, o) in obs[1..].iter().enumerate() {
+        let rel = o.pose * first.pose.inverse();
+        let m = Matrix3::identity() - rel.rotation.to_rotation_matrix().into_inner();
+        a.view_mut((3 * i, 0), (3, 3)).copy_from(&m);
+        b.rows_mut(3 * i, 3).copy_from(&rel.translation.vector);
+    }
+    a.row_mut(3 * n).copy_from(&d.transpose());
+    b[3 * n] = d.dot(&first.pose.translation.vector);
+    let c = a
+        .svd(true, true)
+        .solve(&b, 1e-12)
+        .map_err(|e| anyhow::anyhow!("axis point: {e}"))?;
+    Ok((d, Point3::new(c[0], c[1], c[2])))
+}
+
+/// The joint fit: parameters are small changes of the axis direction (2, radians), the axis
+/// point across the axis (2, mm), and the board pose at angle 0 (rotation vector 3, translation
+/// 3 mm), all about the initial guess.
+struct Fit<'a> {
+    obs: &'a [Observation],
+    object: &'a [Point3<f64>],
+    camera: &'a Camera,
+    d0: Unit<Vector3<f64>>,
+    c0: Point3<f64>,
+    base0: Isometry3<f64>,
+}
+
+impl Fit<'_> {
+    const N: usize = 10;
+
+    fn basis(&self) -> (Vector3<f64>, Vector3<f64>) {
+        let d = self.d0.into_inner();
+        let e1 = if d.x.abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        };
+        let e1 = (e1 - d * d.dot(&e1)).normalize();
+        (e1, d.cross(&e1))
+    }
+
+    fn params(&self, x: &DVector<f64>) -> (Unit<Vector3<f64>>, Point3<f64>, Isometry3<f64>) {
+        let (e1, e2) = self.basis();
+        let d = Unit::new_normalize(self.d0.into_inner() + e1 * x[0] + e2 * x[1]);
+        let c = self.c0 + e1 * x[2] + e2 * x[3];
+        let rot =
+            UnitQuaternion::from_scaled_axis(Vector3::new(x[4], x[5], x[6])) * self.base0.rotation;
+        let t = self.base0.translation.vector + Vector3::new(x[7], x[8], x[9]);
+        (d, c, Isometry3::from_parts(Translation3::from(t), rot))
+    }
+
+    /// Reprojection residuals (pixels), image by image, corner by corner, x then y; a corner
+    /// behind the camera counts as 1e6 px.
+    fn residuals(&self, x: &DVector<f64>) -> DVector<f64> {
+        let (d, c, base) = self.params(x);
+        let mut r = DVector::zeros(2 * self.obs.len() * self.object.len());
+        let mut i = 0;
+        for o in self.obs {
+            let pose = about_axis(&d, &c, o.theta) * base;
+            for (p, q) in self.object.iter().zip(&o.corners) {
+                let (ex, ey) = match self.camera.project(&(pose * p)) {
+                    Some(u) => (u.x - q.x, u.y - q.y),
+                    None => (1e6, 1e6),
+                };
+                r[i] = ex;
+                r[i + 1] = ey;
+                i += 2;
+            }
+        }
+        r
+    }
+
+    /// Levenberg–Marquardt with central-difference Jacobians.
+    fn solve(&self) -> Result<DVector<f64>> {
+        let steps = [1e-7, 1e-7, 1e-5, 1e-5, 1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5];
+        let mut x = DVector::zeros(Self::N);
+        let mut r = self.residuals(&x);
+        let mut cost = r.norm_squared();
+        let mut mu = 1e-3;
+        for _ in 0..200 {
+            let mut j = DMatrix::zeros(r.len(), Self::N);
+            for (p, h) in steps.iter().enumerate() {
+                let (mut a, mut b) = (x.clone(), x.clone());
+                a[p] += h;
+                b[p] -= h;
+                j.set_column(p, &((self.residuals(&a) - self.residuals(&b)) / (2.0 * h)));
+            }
+            let jtj = j.transpose() * &j;
+            let g = j.transpose() * &r;
+            let mut improved = false;
+            for _ in 0..20 {
+                let mut m = jtj.clone();
+                for p in 0..Self::N {
+                    m[(p, p)] += mu * jtj[(p, p)].max(1e-12);
+                }
+                let Some(step) = m.cholesky().map(|ch| ch.solve(&(-&g))) else {
+                    mu *= 10.0;
+                    continue;
+                };
+                let xn = &x + &step;
+                let rn = self.residuals(&xn);
+                let cn = rn.norm_squared();
+                if cn.is_finite() && cn < cost {
+                    let done = cost - cn < 1e-14 * cost.max(1e-300);
+                    (x, r, cost) = (xn, rn, cn);
+                    mu = (mu / 3.0).max(1e-12);
+                    improved = !done;
+                    break;
+                }
+                mu *= 4.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        if !cost.is_finite() {
+            bail!("the axis fit diverged");
+        }
+        Ok(x)
+    }
+}

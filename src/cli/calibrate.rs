@@ -1,0 +1,257 @@
+//! `glasscan calibrate camera|screen|turntable`.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::calibrate::board::{read_images, Board};
+use crate::calibrate::camera::{calibrate_camera, CameraOptions};
+use crate::calibrate::screen::calibrate_screen;
+use crate::calibrate::turntable::calibrate_turntable;
+use crate::decode::{decode_captures, DecodeOptions};
+use crate::rig::calib_io;
+use crate::scan::{background_dir, ScanConfig};
+
+#[derive(Subcommand, Debug)]
+pub enum CalibrateCommand {
+    /// Intrinsics and distortion from chessboard images (OpenCV calibrateCamera).
+    Camera(CameraArgs),
+    /// The monitor's pose from the scan's background capture (decoded Gray code, PnP).
+    Screen(ScreenArgs),
+    /// The turntable axis from a chessboard turned on it to known angles.
+    Turntable(TurntableArgs),
+}
+
+/// The chessboard, shared by the camera and turntable steps.
+#[derive(Args, Debug)]
+pub struct BoardArgs {
+    /// Images of the board: a glob pattern (quote it), e.g. 'calib/left*.jpg'.
+    #[arg(long)]
+    pub images: String,
+    /// Inner corners of the board, COLSxROWS (9x6 for a board of 10×7 squares).
+    #[arg(long, value_parser = Board::parse_size)]
+    pub board: (u32, u32),
+    /// Size of a board square, mm.
+    #[arg(long = "square-mm")]
+    pub square_mm: f64,
+}
+
+impl BoardArgs {
+    fn board(&self) -> Result<Board> {
+        if !(self.square_mm > 0.0 && self.square_mm.is_finite()) {
+            bail!("--square-mm {}: a square size is positive", self.square_mm);
+        }
+        Ok(Board {
+            cols: self.board.0,
+            rows: self.board.1,
+            square_mm: self.square_mm,
+        })
+    }
+}
+
+#[derive(Args, Debug)]
+pub struct CameraArgs {
+    #[command(flatten)]
+    pub board: BoardArgs,
+    /// Hold fx/fy at 1 (square pixels).
+    #[arg(long = "fix-aspect-ratio")]
+    pub fix_aspect_ratio: bool,
+    /// Assume no tangential distortion (p1 = p2 = 0).
+    #[arg(long = "zero-tangent")]
+    pub zero_tangent: bool,
+    /// Hold k3 at 0 (advised for narrow lenses: the fit reports k3 in the hundreds otherwise).
+    #[arg(long = "fix-k3")]
+    pub fix_k3: bool,
+    /// The camera file to write (OpenCV FileStorage YAML, the keys of OpenCV's sample).
+    #[arg(short, long, default_value = "camera.yml")]
+    pub output: PathBuf,
+}
+
+#[derive(Args, Debug)]
+pub struct ScreenArgs {
+    /// The scan folder: scan.toml, the camera file, captures/background/.
+    pub scan: PathBuf,
+    /// Monitor pixel pitch, mm (default: the scan's current screen file's).
+    #[arg(long = "pitch-mm")]
+    pub pitch_mm: Option<f64>,
+    /// The screen file to write (default: the one scan.toml names).
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct TurntableArgs {
+    #[command(flatten)]
+    pub board: BoardArgs,
+    /// Turntable angle of each image (degrees, comma-separated, in the images' name order).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub angles: Vec<f64>,
+    /// The camera's calibration file.
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// The turntable file to write.
+    #[arg(short, long, default_value = "turntable.yml")]
+    pub output: PathBuf,
+}
+
+pub fn run(c: &CalibrateCommand) -> Result<()> {
+    match c {
+        CalibrateCommand::Camera(a) => camera(a),
+        CalibrateCommand::Screen(a) => screen(a),
+        CalibrateCommand::Turntable(a) => turntable(a),
+    }
+}
+
+fn bar(len: usize, what: &str) -> ProgressBar {
+    ProgressBar::new(len as u64).with_style(
+        ProgressStyle::with_template(&format!("{what} [{{bar:40}}] {{pos}}/{{len}} ({{eta}})"))
+            .expect("static template"),
+    )
+}
+
+fn camera(a: &CameraArgs) -> Result<()> {
+    let board = a.board.board()?;
+    let (images, size) = read_images(&a.board.images)?;
+    let o = CameraOptions {
+        fix_aspect_ratio: a.fix_aspect_ratio,
+        zero_tangent: a.zero_tangent,
+        fix_k3: a.fix_k3,
+    };
+    let b = bar(images.len(), "corners");
+    let cal = calibrate_camera(&images, size, &board, &o, |_| b.inc(1))?;
+    b.finish_and_clear();
+    for p in &cal.skipped {
+        eprintln!("warning: {}: board not found, image skipped", p.display());
+    }
+    for v in &cal.views {
+        outln!(
+            "{:>8.3} px  {}{}",
+            v.error_px,
+            v.path.display(),
+            if v.outlier {
+                "  <- outlier (error > 2.5 × the median): check the image, or leave it out"
+            } else {
+                ""
+            }
+        );
+    }
+    let c = &cal.camera;
+    calib_io::write_camera(&a.output, c, cal.rms_px, Some(&cal.record))?;
+    outln!(
+        "{} of {} images used; fx {:.3} fy {:.3} cx {:.3} cy {:.3} px; k1 {:.5} k2 {:.5} p1 {:.6} p2 {:.6} k3 {:.5}; RMS reprojection error {:.4} px",
+        cal.views.len(),
+        images.len(),
+        c.fx,
+        c.fy,
+        c.cx,
+        c.cy,
+        c.dist[0],
+        c.dist[1],
+        c.dist[2],
+        c.dist[3],
+        c.dist[4],
+        cal.rms_px
+    );
+    outln!("wrote {}", a.output.display());
+    Ok(())
+}
+
+fn screen(a: &ScreenArgs) -> Result<()> {
+    let config = ScanConfig::load(&a.scan)?;
+    let camera = calib_io::read_camera(&a.scan.join(&config.calibration.camera))?;
+    let screen_file = a.scan.join(&config.calibration.screen);
+    let pitch_mm = match a.pitch_mm {
+        Some(p) if p > 0.0 && p.is_finite() => p,
+        Some(p) => bail!("--pitch-mm {p}: a pixel pitch is positive"),
+        None => calib_io::read_screen(&screen_file)
+            .map(|s| s.pitch_mm)
+            .with_context(|| {
+                "give the monitor's pixel pitch with --pitch-mm (no screen file to take it from)"
+            })?,
+    };
+    let dir = background_dir(&a.scan);
+    if !dir.is_dir() {
+        bail!(
+            "{}: no background capture; capture the patterns without the object there (see the README: scan folder)",
+            dir.display()
+        );
+    }
+    let code = config.graycode();
+    let o = DecodeOptions::default();
+    let cap = decode_captures(
+        &dir,
+        &code,
+        config.patterns.phase_shift.as_ref(),
+        (camera.width, camera.height),
+        &o,
+    )?;
+    let cal = calibrate_screen(&cap, &code, &camera, pitch_mm)?;
+    let out = a.output.clone().unwrap_or(screen_file);
+    calib_io::write_screen(&out, &cal.screen)?;
+    let t = cal.screen.pose.translation.vector;
+    let n = cal.screen.pose.rotation * nalgebra::Vector3::z();
+    outln!(
+        "monitor decoded in {:.1} % of the image; pose refined on {} of its {} pixels; RMS reprojection error {:.3} px",
+        100.0 * cal.decoded_share,
+        cal.inliers,
+        cal.points,
+        cal.rms_px
+    );
+    outln!(
+        "pixel (0, 0) at ({:.2}, {:.2}, {:.2}) mm, normal ({:.4}, {:.4}, {:.4}) (camera frame)",
+        t.x,
+        t.y,
+        t.z,
+        n.x,
+        n.y,
+        n.z
+    );
+    outln!("wrote {}", out.display());
+    Ok(())
+}
+
+fn turntable(a: &TurntableArgs) -> Result<()> {
+    let board = a.board.board()?;
+    let camera = calib_io::read_camera(&a.camera)?;
+    let (images, size) = read_images(&a.board.images)?;
+    if size != (camera.width, camera.height) {
+        bail!(
+            "the images are {}×{} but the camera ({}) takes {}×{}",
+            size.0,
+            size.1,
+            a.camera.display(),
+            camera.width,
+            camera.height
+        );
+    }
+    let cal = calibrate_turntable(&images, &a.angles, &board, &camera)?;
+    for p in &cal.skipped {
+        eprintln!("warning: {}: board not found, image skipped", p.display());
+    }
+    for v in &cal.views {
+        outln!(
+            "{:>8.2}°  angle residual {:+.4}°  {:.3} px  {}",
+            v.angle_deg,
+            v.angle_residual_deg,
+            v.rms_px,
+            v.path.display()
+        );
+    }
+    calib_io::write_turntable_axis(&a.output, &cal.axis_point, &cal.axis_dir)?;
+    let (p, d) = (cal.axis_point, cal.axis_dir);
+    outln!(
+        "axis through ({:.2}, {:.2}, {:.2}) mm along ({:.5}, {:.5}, {:.5}) (camera frame); RMS reprojection error {:.3} px over {} images",
+        p.x,
+        p.y,
+        p.z,
+        d.x,
+        d.y,
+        d.z,
+        cal.rms_px,
+        cal.views.len()
+    );
+    outln!("wrote {}", a.output.display());
+    Ok(())
+}

@@ -1,0 +1,262 @@
+//! Calibration image sets with known truth (`simulate --calibration-images`):
+//!
+//! - `calibration/camera/board_NN.png`: a 9×6 chessboard at varied distances, tilts (±55°) and places in
+//!   the image, seen through the camera's lens model (its distortion included);
+//! - `calibration/turntable/board_NN.png`: a smaller 9×6 board standing on the turntable, beside the axis,
+//!   turned to each angle of `calibration/setup.json`;
+//! - the background capture (`captures/background/`) for the monitor pose;
+//! - `calibration/setup.json`: the boards (inner corners, square sizes) and the turntable angles,
+//!   with the commands that calibrate from them.
+//!
+//! Images are area-sampled (6 × 6 per pixel), with the scan's sensor noise and blur.
+
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use opencv::core::{Mat, MatTraitConst, Size};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::SimulateOptions;
+use crate::calibrate::board::Board;
+use crate::rig::Camera;
+use crate::scan::Scan;
+use crate::util::image::write_png;
+
+/// Board images for the camera.
+pub const CAMERA_IMAGES: usize = 60;
+/// Turntable angles of the board standing on it, degrees.
+pub const TURNTABLE_ANGLES: [f64; 9] = [-40.0, -30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 40.0];
+/// Grey levels of the board's black and white squares and of what lies behind it.
+const BLACK: f32 = 25.0;
+const WHITE: f32 = 225.0;
+const BEHIND: f32 = 90.0;
+
+/// What `calibration/setup.json` records.
+#[derive(Serialize)]
+struct Setup {
+    board: String,
+    camera_square_mm: f64,
+    turntable_square_mm: f64,
+    turntable_angles_deg: Vec<f64>,
+    commands: Vec<String>,
+}
+
+/// Renders the calibration sets of `scan` (its camera, turntable and background) into
+/// `scan.dir/calibration`.
+pub fn write_calibration_images(scan: &Scan, o: &SimulateOptions) -> Result<()> {
+    let cam = &scan.camera;
+    let d = o.camera_distance_mm;
+    // Boards whose width with margins (12 squares) is a share of the image width at the axis
+    // distance: a large one for the camera (strong perspective when tilted), a smaller one that
+    // stays in view on the turntable.
+    let board_for = |share: f64| Board {
+        cols: 9,
+        rows: 6,
+        square_mm: (share * cam.width as f64 * d / cam.fx / 12.0 * 10.0).round() / 10.0,
+    };
+    let board = board_for(0.6);
+    let dir = scan.dir.join("calibration");
+    let mut rng = ChaCha8Rng::seed_from_u64(o.seed ^ 0xca1b);
+    let mut poses = Vec::new();
+    for _ in 0..10_000 {
+        if poses.len() == CAMERA_IMAGES {
+            break;
+        }
+        let rot = UnitQuaternion::from_euler_angles(
+            rng.random_range(-55f64..55.0).to_radians(),
+            rng.random_range(-55f64..55.0).to_radians(),
+            rng.random_range(-15f64..15.0).to_radians(),
+        );
+        let z = d * rng.random_range(0.8..1.2);
+        let centre = Vector3::new(
+            rng.random_range(-0.35..0.35) * cam.width as f64 * z / cam.fx,
+            rng.random_range(-0.35..0.35) * cam.height as f64 * z / cam.fy,
+            z,
+        );
+        let half = Vector3::new(board.cols as f64, board.rows as f64, 0.0) * board.square_mm / 2.0;
+        let pose = Isometry3::from_parts(Translation3::from(centre - rot * half), rot);
+        if in_view(cam, &pose, &board) {
+            poses.push(pose);
+        }
+    }
+    if poses.len() < CAMERA_IMAGES {
+        bail!("cannot place the calibration board in the camera's view");
+    }
+    render_set(&dir.join("camera"), &poses, &board, cam, o, o.seed ^ 0x5eed)?;
+
+    // The board standing on the turntable, facing the camera at 0°, 10 mm beside the axis and
+    // 30 mm in front of it.
+    let small = board_for(0.5);
+    let s = small.square_mm;
+    let upright = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+    let in_world = Isometry3::from_parts(
+        Translation3::new(
+            -(small.cols as f64) * s / 2.0 + 10.0,
+            small.rows as f64 * s / 2.0,
+            30.0,
+        ),
+        upright,
+    );
+    let base = scan
+        .turntable
+        .base_pose()
+        .context("the camera lies on the turntable axis")?;
+    let turned: Vec<Isometry3<f64>> = TURNTABLE_ANGLES
+        .iter()
+        .map(|a| {
+            base * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), a.to_radians()) * in_world
+        })
+        .collect();
+    if let Some(k) = turned.iter().position(|p| !in_view(cam, p, &small)) {
+        bail!(
+            "the turntable board leaves the camera's view at {}° (raise --camera-distance-mm)",
+            TURNTABLE_ANGLES[k]
+        );
+    }
+    render_set(
+        &dir.join("turntable"),
+        &turned,
+        &small,
+        cam,
+        o,
+        o.seed ^ 0x7a61,
+    )?;
+
+    let board_arg = format!("{}x{}", board.cols, board.rows);
+    let scan_dir = scan.dir.display();
+    let angles: Vec<String> = TURNTABLE_ANGLES.iter().map(|a| a.to_string()).collect();
+    let setup = Setup {
+        board: board_arg.clone(),
+        camera_square_mm: board.square_mm,
+        turntable_square_mm: small.square_mm,
+        turntable_angles_deg: TURNTABLE_ANGLES.to_vec(),
+        commands: vec![
+            format!("glasscan calibrate camera --images '{scan_dir}/calibration/camera/*.png' --board {board_arg} --square-mm {} -o {scan_dir}/camera.yml", board.square_mm),
+            format!("glasscan calibrate screen {scan_dir}"),
+            format!("glasscan calibrate turntable --images '{scan_dir}/calibration/turntable/*.png' --board {board_arg} --square-mm {} --angles={} --camera {scan_dir}/camera.yml -o {scan_dir}/turntable.yml", small.square_mm, angles.join(",")),
+        ],
+    };
+    crate::util::atomic::write_atomic(&dir.join("setup.json"), |w| {
+        serde_json::to_writer_pretty(&mut *w, &setup)?;
+        Ok(())
+    })
+    .with_context(|| format!("cannot write {}", dir.join("setup.json").display()))
+}
+
+/// True when the whole board with its margin projects inside the image (10 px inset).
+fn in_view(cam: &Camera, pose: &Isometry3<f64>, b: &Board) -> bool {
+    let s = b.square_mm;
+    let (x0, y0, x1, y1) = (
+        -2.0 * s,
+        -2.0 * s,
+        (b.cols + 1) as f64 * s,
+        (b.rows + 1) as f64 * s,
+    );
+    [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+        .iter()
+        .all(|&(x, y)| {
+            cam.project(&(pose * Point3::new(x, y, 0.0)))
+                .is_some_and(|p| {
+                    p.x > 10.0
+                        && p.y > 10.0
+                        && p.x < cam.width as f64 - 11.0
+                        && p.y < cam.height as f64 - 11.0
+                })
+        })
+}
+
+/// Renders one image per pose into `dir/board_NN.png`.
+fn render_set(
+    dir: &Path,
+    poses: &[Isometry3<f64>],
+    b: &Board,
+    cam: &Camera,
+    o: &SimulateOptions,
+    seed: u64,
+) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    poses.par_iter().enumerate().try_for_each(|(k, pose)| {
+        let mut img = render_board(cam, pose, b);
+        if o.noise > 0.0 {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(k as u64));
+            let normal = Normal::new(0.0, o.noise).expect("positive sigma");
+            for p in &mut img {
+                *p += normal.sample(&mut rng) as f32;
+            }
+        }
+        let bytes: Vec<u8> = img
+            .iter()
+            .map(|v| v.round().clamp(0.0, 255.0) as u8)
+            .collect();
+        let mat = Mat::new_rows_cols_with_data(cam.height as i32, cam.width as i32, &bytes)?;
+        let mut out = mat.try_clone()?;
+        if o.blur_px > 0.0 {
+            opencv::imgproc::gaussian_blur(
+                &mat,
+                &mut out,
+                Size::new(0, 0),
+                o.blur_px,
+                o.blur_px,
+                opencv::core::BORDER_REPLICATE,
+            )?;
+        }
+        write_png(&dir.join(format!("board_{k:02}.png")), &out)
+    })
+}
+
+/// The grey image of the board at `pose` (board → camera), 6 × 6 samples per pixel; each
+/// pixel's sample rays come from its centre ray and the ray's derivatives across the pixel.
+fn render_board(cam: &Camera, pose: &Isometry3<f64>, b: &Board) -> Vec<f32> {
+    let inv = pose.inverse();
+    let (o, n) = (inv * Point3::origin(), 6usize);
+    let s = b.square_mm;
+    let shade = |x: f64, y: f64| -> f32 {
+        let (i, j) = ((x / s).floor(), (y / s).floor());
+        if i < -2.0 || j < -2.0 || i > b.cols as f64 || j > b.rows as f64 {
+            BEHIND
+        } else if i < -1.0 || j < -1.0 || i >= b.cols as f64 || j >= b.rows as f64 {
+            WHITE
+        } else if (i + j) as i64 % 2 == 0 {
+            BLACK
+        } else {
+            WHITE
+        }
+    };
+    let w = cam.width as usize;
+    let mut img = vec![0.0f32; w * cam.height as usize];
+    img.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+        for (u, px) in row.iter_mut().enumerate() {
+            let (uf, vf) = (u as f64, v as f64);
+            let ray = |du: f64, dv: f64| cam.pixel_ray(uf + du, vf + dv).map(|r| inv * r);
+            let (Some(r0), Some(ru), Some(rv)) = (ray(0.0, 0.0), ray(0.5, 0.0), ray(0.0, 0.5))
+            else {
+                *px = BEHIND;
+                continue;
+            };
+            let (du, dv) = ((ru - r0) * 2.0, (rv - r0) * 2.0);
+            let mut sum = 0.0;
+            for a in 0..n {
+                for c in 0..n {
+                    let (fu, fv) = (
+                        (a as f64 + 0.5) / n as f64 - 0.5,
+                        (c as f64 + 0.5) / n as f64 - 0.5,
+                    );
+                    let r: Vector3<f64> = r0 + du * fu + dv * fv;
+                    let t = -o.z / r.z;
+                    sum += if r.z.abs() > 1e-12 && t > 0.0 {
+                        shade(o.x + t * r.x, o.y + t * r.y)
+                    } else {
+                        BEHIND
+                    };
+                }
+            }
+            *px = sum / (n * n) as f32;
+        }
+    });
+    img
+}

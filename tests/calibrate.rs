@@ -1,0 +1,351 @@
+//! `glasscan calibrate`: against OpenCV's own sample calibration, against simulated rigs with
+//! known truth, and on bad input.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+use glasscan::calibrate::board::{read_images, Board};
+use glasscan::calibrate::camera::{calibrate_camera, CameraOptions};
+use glasscan::calibrate::screen::calibrate_screen;
+use glasscan::calibrate::turntable::calibrate_turntable;
+use glasscan::decode::{decode_captures, DecodeOptions};
+use glasscan::mesh::shapes::icosphere;
+use glasscan::scan::Scan;
+use glasscan::simulate::calibration::TURNTABLE_ANGLES;
+use glasscan::simulate::{simulate, SimulateOptions};
+use nalgebra::Vector3;
+use opencv::core::{FileNodeTraitConst, FileStorage, FileStorageTraitConst, MatTraitConstManual};
+
+fn glasscan(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_glasscan"))
+        .args(args)
+        .output()
+        .expect("run glasscan")
+}
+
+/// Asserts exit code 1 with one `error:` line containing `needle`, and no panic.
+fn assert_fails_with(o: &Output, needle: &str) {
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "stderr: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    let line = err.lines().find(|l| l.starts_with("error: "));
+    assert!(
+        line.is_some_and(|l| l.contains(needle)),
+        "expected '{needle}' in: {err}"
+    );
+}
+
+const OPENCV_DATA: &str = "/usr/share/doc/opencv-doc/examples/data";
+
+/// OpenCV's sample calibration images and reference result (Debian package opencv-doc),
+/// installed when missing and running as root; a failure, not a skip, otherwise.
+fn opencv_samples() -> PathBuf {
+    let dir = Path::new(OPENCV_DATA);
+    if !dir.join("left_intrinsics.yml").is_file() {
+        let root = Command::new("id")
+            .arg("-u")
+            .output()
+            .map(|o| o.stdout == b"0\n");
+        if root.unwrap_or(false) {
+            let ok = Command::new("apt-get")
+                .args(["install", "-y", "opencv-doc"])
+                .env("DEBIAN_FRONTEND", "noninteractive")
+                .status()
+                .is_ok_and(|s| s.success());
+            assert!(ok, "apt-get install -y opencv-doc failed");
+        }
+    }
+    assert!(
+        dir.join("left_intrinsics.yml").is_file() && dir.join("left01.jpg").is_file(),
+        "OpenCV's sample images are missing: run `sudo apt-get install opencv-doc`"
+    );
+    dir.to_path_buf()
+}
+
+/// Camera values of an OpenCV calibration file, read by OpenCV itself: fx fy cx cy, k1..k3,
+/// the average error, nframes.
+fn opencv_values(path: &Path) -> ([f64; 4], Vec<f64>, f64, i32) {
+    let fs = FileStorage::new(path.to_str().unwrap(), opencv::core::FileStorage_READ, "").unwrap();
+    assert!(fs.is_opened().unwrap(), "{}", path.display());
+    let k = fs.get("camera_matrix").unwrap().mat().unwrap();
+    let k: Vec<f64> = k.data_typed::<f64>().unwrap().to_vec();
+    let d = fs.get("distortion_coefficients").unwrap().mat().unwrap();
+    let d: Vec<f64> = d.data_typed::<f64>().unwrap().to_vec();
+    let err = fs.get("avg_reprojection_error").unwrap().real().unwrap();
+    let n = fs.get("nframes").unwrap().to_i32().unwrap();
+    ([k[0], k[4], k[2], k[5]], d, err, n)
+}
+
+#[test]
+fn opencv_sample_images_match_opencvs_own_calibration() {
+    let data = opencv_samples();
+    let out = tempfile::tempdir().unwrap();
+    let yml = out.path().join("left.yml");
+    let o = glasscan(&[
+        "calibrate",
+        "camera",
+        "--images",
+        data.join("left[0-9]*.jpg").to_str().unwrap(),
+        "--board",
+        "9x6",
+        "--square-mm",
+        "0.025",
+        "--fix-aspect-ratio",
+        "-o",
+        yml.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let ours = opencv_values(&yml);
+    let reference = opencv_values(&data.join("left_intrinsics.yml"));
+    assert_eq!(ours.3, 13, "images used");
+    assert_eq!(reference.3, 13);
+    for i in 0..4 {
+        assert!(
+            (ours.0[i] - reference.0[i]).abs() <= 0.5,
+            "K[{i}]: {ours:?} vs {reference:?}"
+        );
+    }
+    for i in 0..4 {
+        assert!(
+            (ours.1[i] - reference.1[i]).abs() <= 0.01,
+            "dist[{i}]: {ours:?} vs {reference:?}"
+        );
+    }
+    assert!(
+        (ours.1[4] - reference.1[4]).abs() <= 0.03,
+        "k3: {ours:?} vs {reference:?}"
+    );
+    assert!(
+        (ours.2 - reference.2).abs() <= 0.03,
+        "avg error: {ours:?} vs {reference:?}"
+    );
+    // Our reader takes the same file; the sample's other keys are present.
+    let cam = glasscan::rig::calib_io::read_camera(&yml).unwrap();
+    assert_eq!(cam.fx, ours.0[0]);
+    let text = std::fs::read_to_string(&yml).unwrap();
+    for key in [
+        "board_width: 9",
+        "board_height: 6",
+        "square_size",
+        "flags: 2",
+        "per_view_reprojection_errors",
+        "extrinsic_parameters",
+    ] {
+        assert!(text.contains(key), "{key} missing:\n{text}");
+    }
+    // The outlier left02.jpg (error ~1.2 px against a median ~0.2 px) is flagged.
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let flagged: Vec<&str> = stdout.lines().filter(|l| l.contains("outlier")).collect();
+    assert!(
+        flagged.len() == 1 && flagged[0].contains("left02.jpg"),
+        "{stdout}"
+    );
+}
+
+/// A simulated rig with calibration images (one view of a ball), made once.
+fn rig() -> &'static (tempfile::TempDir, Scan) {
+    static RIG: OnceLock<(tempfile::TempDir, Scan)> = OnceLock::new();
+    RIG.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let o = SimulateOptions {
+            views: 1,
+            spp: 1,
+            decoded_only: true,
+            calibration_images: true,
+            distortion: [-0.1, 0.05, 0.0, 0.0, 0.0],
+            ..Default::default()
+        };
+        simulate(&icosphere(60.0, 3), dir.path(), &o, |_| ()).unwrap();
+        let scan = Scan::open(dir.path()).unwrap();
+        (dir, scan)
+    })
+}
+
+/// The square size (mm) of the camera's or the turntable's board.
+fn square_mm(scan: &Scan, set: &str) -> f64 {
+    let setup: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(scan.dir.join("calibration/setup.json")).unwrap(),
+    )
+    .unwrap();
+    setup[format!("{set}_square_mm")].as_f64().unwrap()
+}
+
+#[test]
+fn simulated_camera_calibrates_to_its_truth() {
+    let (_dir, truth) = rig();
+    let board = Board {
+        cols: 9,
+        rows: 6,
+        square_mm: square_mm(truth, "camera"),
+    };
+    let pattern = truth.dir.join("calibration/camera/*.png");
+    let (images, size) = read_images(pattern.to_str().unwrap()).unwrap();
+    // A lens without decentring (tangential) distortion, calibrated as such: with p1, p2 free
+    // the principal point trades against them at this narrow field of view (±1.5 px, README).
+    let o = CameraOptions {
+        zero_tangent: true,
+        ..Default::default()
+    };
+    let cal = calibrate_camera(&images, size, &board, &o, |_| ()).unwrap();
+    let (c, t) = (&cal.camera, &truth.camera);
+    assert!(cal.skipped.is_empty());
+    assert!(
+        (c.fx / t.fx - 1.0).abs() < 1e-3 && (c.fy / t.fy - 1.0).abs() < 1e-3,
+        "{c:?} vs {t:?}"
+    );
+    assert!(
+        (c.cx - t.cx).abs() < 0.5 && (c.cy - t.cy).abs() < 0.5,
+        "{c:?} vs {t:?}"
+    );
+    assert!((c.dist[0] - t.dist[0]).abs() < 0.01, "{c:?} vs {t:?}");
+    assert!(cal.rms_px < 0.2, "{}", cal.rms_px);
+}
+
+#[test]
+fn simulated_monitor_pose_matches_its_truth() {
+    let (_dir, truth) = rig();
+    let code = truth.graycode();
+    let cap = decode_captures(
+        &truth.background_dir(),
+        &code,
+        None,
+        (truth.camera.width, truth.camera.height),
+        &DecodeOptions::default(),
+    )
+    .unwrap();
+    let cal = calibrate_screen(&cap, &code, &truth.camera, truth.screen.pitch_mm).unwrap();
+    let (p, q) = (cal.screen.pose, truth.screen.pose);
+    // Every monitor corner within 0.2 mm, the orientation within 0.02°.
+    for (u, v) in [(0.0, 0.0), (1919.0, 0.0), (0.0, 1079.0), (1919.0, 1079.0)] {
+        let e = (cal.screen.point(u, v) - truth.screen.point(u, v)).norm();
+        assert!(e < 0.2, "corner ({u}, {v}) off by {e} mm");
+    }
+    let angle = p.rotation.angle_to(&q.rotation).to_degrees();
+    assert!(angle < 0.02, "{angle}°");
+    assert!(cal.rms_px < 1.0 && cal.inliers > 50_000, "{cal:?}");
+}
+
+#[test]
+fn simulated_turntable_axis_matches_its_truth() {
+    let (_dir, truth) = rig();
+    let board = Board {
+        cols: 9,
+        rows: 6,
+        square_mm: square_mm(truth, "turntable"),
+    };
+    let pattern = truth.dir.join("calibration/turntable/*.png");
+    let (images, _) = read_images(pattern.to_str().unwrap()).unwrap();
+    let cal = calibrate_turntable(&images, &TURNTABLE_ANGLES, &board, &truth.camera).unwrap();
+    let (d, dt) = (cal.axis_dir, truth.turntable.axis_dir);
+    let angle = d.angle(&dt).to_degrees();
+    assert!(angle < 0.05, "axis direction off by {angle}°");
+    // The estimated point lies on the true axis (the point along it is a free choice).
+    let off: Vector3<f64> = cal.axis_point - truth.turntable.axis_point;
+    let across = (off - dt.into_inner() * dt.dot(&off)).norm();
+    assert!(across < 0.3, "axis point {across} mm off the true axis");
+    assert!(
+        cal.views.iter().all(|v| v.angle_residual_deg.abs() < 0.5),
+        "{:?}",
+        cal.views
+    );
+}
+
+#[test]
+fn bad_calibration_input_gives_clear_errors() {
+    let (_dir, truth) = rig();
+    let sq = square_mm(truth, "camera").to_string();
+    let sq_turntable = square_mm(truth, "turntable").to_string();
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let camera_run = |pattern: &Path| {
+        glasscan(&[
+            "calibrate",
+            "camera",
+            "--images",
+            pattern.to_str().unwrap(),
+            "--board",
+            "9x6",
+            "--square-mm",
+            &sq,
+            "-o",
+            t.join("c.yml").to_str().unwrap(),
+        ])
+    };
+    assert_fails_with(&camera_run(&t.join("nothing*.png")), "no file matches");
+    // Monitor images hold no board.
+    let bg = truth.background_dir();
+    assert_fails_with(&camera_run(&bg.join("w*.png")), "found in 0 of 1 images");
+    // Two boards and a blank image: too few usable.
+    let few = t.join("few");
+    std::fs::create_dir(&few).unwrap();
+    for (i, src) in ["board_00.png", "board_01.png"].iter().enumerate() {
+        std::fs::copy(
+            truth.dir.join("calibration/camera").join(src),
+            few.join(format!("{i}.png")),
+        )
+        .unwrap();
+    }
+    std::fs::copy(bg.join("black.png"), few.join("2.png")).unwrap();
+    assert_fails_with(&camera_run(&few.join("*.png")), "found in 2 of 3 images");
+    // A smaller image among the others.
+    let small = opencv::core::Mat::new_rows_cols_with_default(
+        10,
+        10,
+        opencv::core::CV_8UC1,
+        opencv::core::Scalar::all(0.0),
+    )
+    .unwrap();
+    opencv::imgcodecs::imwrite(
+        few.join("3.png").to_str().unwrap(),
+        &small,
+        &opencv::core::Vector::new(),
+    )
+    .unwrap();
+    assert_fails_with(&camera_run(&few.join("*.png")), "10×10 pixels");
+    // Angles that do not match the images.
+    let o = glasscan(&[
+        "calibrate",
+        "turntable",
+        "--images",
+        truth
+            .dir
+            .join("calibration/turntable/*.png")
+            .to_str()
+            .unwrap(),
+        "--board",
+        "9x6",
+        "--square-mm",
+        &sq_turntable,
+        "--angles=0,10",
+        "--camera",
+        truth.dir.join("camera.yml").to_str().unwrap(),
+        "-o",
+        t.join("tt.yml").to_str().unwrap(),
+    ]);
+    assert_fails_with(&o, "2 angles for 9 images");
+    // A background capture in which the monitor is dark: too little decodes.
+    let dark = t.join("dark");
+    for f in ["scan.toml", "camera.yml", "screen.yml", "turntable.yml"] {
+        std::fs::create_dir_all(&dark).unwrap();
+        std::fs::copy(truth.dir.join(f), dark.join(f)).unwrap();
+    }
+    let dark_bg = dark.join("captures/background");
+    std::fs::create_dir_all(&dark_bg).unwrap();
+    for e in std::fs::read_dir(&bg).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(bg.join("black.png"), dark_bg.join(e.file_name())).unwrap();
+    }
+    let o = glasscan(&[
+        "calibrate",
+        "screen",
+        dark.to_str().unwrap(),
+        "-o",
+        t.join("s.yml").to_str().unwrap(),
+    ]);
+    assert_fails_with(&o, "the monitor decodes in 0.00 %");
+    // No background capture at all.
+    std::fs::remove_dir_all(&dark_bg).unwrap();
+    let o = glasscan(&["calibrate", "screen", dark.to_str().unwrap()]);
+    assert_fails_with(&o, "no background capture");
+}
