@@ -1,4 +1,5 @@
-//! `glasscan reconstruct`: resuming after a crash gives the uninterrupted result; bad input.
+//! `glasscan reconstruct`: resuming after a crash gives the uninterrupted result; extreme
+//! refractive indices; bad input.
 
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
@@ -16,12 +17,17 @@ fn glasscan(args: &[&str]) -> Output {
 }
 
 fn small_scan(dir: &Path) {
+    small_scan_with_ior(dir, SimulateOptions::default().ior);
+}
+
+fn small_scan_with_ior(dir: &Path, ior: f64) {
     let opts = SimulateOptions {
         views: 12,
         width: 240,
         height: 180,
         spp: 1,
         decoded_only: true,
+        ior,
         ..Default::default()
     };
     simulate(
@@ -139,4 +145,53 @@ fn bad_input_is_a_clear_error() {
     // A scan without decoded data.
     std::fs::remove_dir_all(scan.join("decoded")).unwrap();
     fails_with(&[], "glasscan decode");
+}
+
+/// Nearly air (1.0001: the refraction term carries almost nothing) and diamond (2.42: about half
+/// the object pixels end in total internal reflection) against the usual glass (1.4723): every
+/// run completes, every stage stays a valid surface (the run checks it), and the results are
+/// close to the truth (under 1 % of the object's size).
+#[test]
+fn extreme_refractive_indices_reconstruct_sensibly() {
+    let mut accuracies = Vec::new();
+    for ior in [1.4723, 1.0001, 2.42] {
+        let dir = tempfile::tempdir().unwrap();
+        let scan = dir.path().join("scan");
+        small_scan_with_ior(&scan, ior);
+        let config = dir.path().join("c.toml");
+        std::fs::write(&config, CONFIG).unwrap();
+        let out = dir.path().join("out");
+        let o = glasscan(&[
+            "reconstruct",
+            scan.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--config",
+            config.to_str().unwrap(),
+        ]);
+        assert!(
+            o.status.success(),
+            "ior {ior}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
+                .unwrap();
+        let accuracy = report["evaluation_against_ground_truth"]["accuracy_mm"]
+            .as_f64()
+            .unwrap();
+        // The ellipsoid's diagonal is 2·|(30, 24, 20)| ≈ 86 mm.
+        assert!(
+            accuracy.is_finite() && accuracy < 0.86,
+            "ior {ior}: accuracy {accuracy} mm"
+        );
+        let used = report["stages"][2]["refraction_rays_used"]
+            .as_u64()
+            .unwrap();
+        assert!(used > 0, "ior {ior}: no refraction ray used");
+        let info = glasscan(&["info", out.join("result.ply").to_str().unwrap()]);
+        assert!(info.status.success(), "ior {ior}: result not valid");
+        accuracies.push(accuracy);
+    }
+    eprintln!("accuracy at ior 1.4723, 1.0001, 2.42: {accuracies:?} mm");
 }

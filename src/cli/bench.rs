@@ -17,6 +17,35 @@ pub enum BenchCommand {
     Remesh(RemeshBenchArgs),
     /// Loss + gradient of the refraction term over a decoded scan against bare Embree queries.
     Gradient(GradientArgs),
+    /// The presets' speed/accuracy trade on simulated scans of the shared meshes.
+    Reconstruct(ReconstructBenchArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct ReconstructBenchArgs {
+    /// Folder with the {object}_scan.ply meshes.
+    #[arg(long, default_value = "../shared/meshes")]
+    pub meshes: PathBuf,
+    /// Scans, runs, results.json, results.md and time_vs_accuracy.png go here; a rerun skips
+    /// the runs results.json already holds.
+    #[arg(long, default_value = "target/bench-reconstruct")]
+    pub work: PathBuf,
+    /// Objects, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "pig,horse,dog")]
+    pub objects: Vec<String>,
+    /// Presets, comma-separated (drt gets the time of the slowest other preset).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "fast,balanced,accurate,drt"
+    )]
+    pub presets: Vec<String>,
+    /// View counts, comma-separated, taken evenly from the scan's 72.
+    #[arg(long, value_delimiter = ',', default_value = "72,36,18,9")]
+    pub views: Vec<usize>,
+    /// Scans: exact (decoded-only correspondences) and/or noisy (noise 2, blur 0.7, decoded).
+    #[arg(long, value_delimiter = ',', default_value = "exact,noisy")]
+    pub scans: Vec<String>,
 }
 
 #[derive(Args, Debug)]
@@ -106,7 +135,31 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Trace(a) => run_trace(a),
         BenchCommand::Remesh(a) => run_remesh(a),
         BenchCommand::Gradient(a) => run_gradient(a),
+        BenchCommand::Reconstruct(a) => run_reconstruct(a),
     }
+}
+
+fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
+    use crate::bench::reconstruct::{run_bench, BenchOptions};
+    let o = BenchOptions {
+        meshes: a.meshes.clone(),
+        work: a.work.clone(),
+        objects: a.objects.clone(),
+        presets: a.presets.clone(),
+        views: a.views.clone(),
+        scans: a.scans.clone(),
+    };
+    let bars = super::reconstruct::Bars::new();
+    let log = |s: &str| bars.bar.suspend(|| eprintln!("{s}"));
+    let results = run_bench(&o, &bars, &log)?;
+    bars.bar.finish_and_clear();
+    outln!("{}", std::fs::read_to_string(a.work.join("results.md"))?);
+    outln!(
+        "{} runs; plot: {}",
+        results.len(),
+        a.work.join("time_vs_accuracy.png").display()
+    );
+    Ok(())
 }
 
 fn run_gradient(a: &GradientArgs) -> Result<()> {

@@ -1,10 +1,11 @@
-//! `loss.png`: the loss terms over the iterations (log scale), stage boundaries in grey.
+//! Plots a person can open: `loss.png` (the loss terms over the iterations, log scale, stage
+//! boundaries in grey) and the benchmark's time against accuracy.
 
 use std::path::Path;
 
 use anyhow::Result;
 use opencv::core::{Mat, Point, Scalar, CV_8UC3};
-use opencv::imgproc::{line, put_text, FONT_HERSHEY_SIMPLEX, LINE_AA};
+use opencv::imgproc::{circle, line, put_text, FILLED, FONT_HERSHEY_SIMPLEX, LINE_AA};
 
 use super::IterationRecord;
 use crate::util::image::write_png;
@@ -67,37 +68,16 @@ pub fn loss_plot(path: &Path, history: &[IterationRecord]) -> Result<()> {
             )?;
         }
     }
-    line(
-        &mut img,
-        Point::new(margin, h - margin),
-        Point::new(w - margin, h - margin),
-        Scalar::all(0.0),
-        1,
-        LINE_AA,
-        0,
-    )?;
-    line(
-        &mut img,
-        Point::new(margin, margin),
-        Point::new(margin, h - margin),
-        Scalar::all(0.0),
-        1,
-        LINE_AA,
-        0,
-    )?;
+    axes(&mut img, w, h, margin)?;
     let mut decade = lo;
     while decade <= hi {
         let yy = y(10f64.powf(decade));
-        put_text(
+        text(
             &mut img,
             &format!("1e{decade}"),
             Point::new(5, yy + 4),
-            FONT_HERSHEY_SIMPLEX,
             0.4,
             Scalar::all(0.0),
-            1,
-            LINE_AA,
-            false,
         )?;
         decade += 1.0;
     }
@@ -116,28 +96,184 @@ pub fn loss_plot(path: &Path, history: &[IterationRecord]) -> Result<()> {
                 )?;
             }
         }
-        put_text(
+        text(
             &mut img,
             name,
             Point::new(margin + 130 * k as i32, margin - 20),
-            FONT_HERSHEY_SIMPLEX,
             0.5,
             *colour,
-            1,
-            LINE_AA,
-            false,
         )?;
     }
-    put_text(
+    text(
         &mut img,
         "iteration (grey: new stage)",
         Point::new(w / 2 - 100, h - 20),
-        FONT_HERSHEY_SIMPLEX,
         0.5,
         Scalar::all(0.0),
+    )?;
+    write_png(path, &img)
+}
+
+/// The two axis lines of a `w` × `h` plot with `margin`.
+fn axes(img: &mut Mat, w: i32, h: i32, margin: i32) -> Result<()> {
+    let black = Scalar::all(0.0);
+    line(
+        img,
+        Point::new(margin, h - margin),
+        Point::new(w - margin, h - margin),
+        black,
+        1,
+        LINE_AA,
+        0,
+    )?;
+    line(
+        img,
+        Point::new(margin, margin),
+        Point::new(margin, h - margin),
+        black,
+        1,
+        LINE_AA,
+        0,
+    )?;
+    Ok(())
+}
+
+fn text(img: &mut Mat, s: &str, at: Point, scale: f64, colour: Scalar) -> Result<()> {
+    put_text(
+        img,
+        s,
+        at,
+        FONT_HERSHEY_SIMPLEX,
+        scale,
+        colour,
         1,
         LINE_AA,
         false,
+    )?;
+    Ok(())
+}
+
+/// Colours (BGR) of the presets in [`time_accuracy_plot`].
+const PRESET_COLOURS: [(&str, [f64; 3]); 4] = [
+    ("fast", [0.0, 140.0, 0.0]),
+    ("balanced", [200.0, 80.0, 0.0]),
+    ("accurate", [0.0, 0.0, 200.0]),
+    ("drt", [120.0, 120.0, 120.0]),
+];
+
+/// Accuracy (mm, linear) against wall time (s, log scale): one polyline per run through its
+/// (time, accuracy) after the hull and each stage, coloured by the preset named in its label
+/// (the label's third word), labelled at its end.
+pub fn time_accuracy_plot(path: &Path, series: &[(String, Vec<(f64, f64)>)]) -> Result<()> {
+    let (w, h, margin) = (1000, 640, 70);
+    let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC3, Scalar::all(255.0))?;
+    let pts = series
+        .iter()
+        .flat_map(|s| s.1.iter())
+        .filter(|p| p.0 > 0.0 && p.1.is_finite());
+    let (t_lo, t_hi, a_hi) = pts.fold((f64::INFINITY, 0.0f64, 0.0f64), |(a, b, c), p| {
+        (a.min(p.0), b.max(p.0), c.max(p.1))
+    });
+    let (lo, hi) = if t_lo.is_finite() {
+        (
+            t_lo.log10().floor(),
+            t_hi.log10().ceil().max(t_lo.log10().floor() + 1.0),
+        )
+    } else {
+        (0.0, 1.0)
+    };
+    let a_hi = if a_hi > 0.0 {
+        (a_hi * 10.0).ceil() / 10.0
+    } else {
+        1.0
+    };
+    let x = |t: f64| margin + ((w - 2 * margin) as f64 * (t.log10() - lo) / (hi - lo)) as i32;
+    let y = |a: f64| h - margin - ((h - 2 * margin) as f64 * a / a_hi) as i32;
+    axes(&mut img, w, h, margin)?;
+    let black = Scalar::all(0.0);
+    let mut decade = lo;
+    while decade <= hi {
+        let t = 10f64.powf(decade);
+        text(
+            &mut img,
+            &format!("{t} s"),
+            Point::new(x(t) - 15, h - margin + 18),
+            0.4,
+            black,
+        )?;
+        decade += 1.0;
+    }
+    for k in 0..=5 {
+        let a = a_hi * k as f64 / 5.0;
+        text(
+            &mut img,
+            &format!("{a:.2}"),
+            Point::new(10, y(a) + 4),
+            0.4,
+            black,
+        )?;
+    }
+    for (name, points) in series {
+        let preset = name.split_whitespace().nth(2).unwrap_or("");
+        let c = PRESET_COLOURS
+            .iter()
+            .find(|(p, _)| *p == preset)
+            .map_or([0.0; 3], |(_, c)| *c);
+        let colour = Scalar::new(c[0], c[1], c[2], 0.0);
+        let ok: Vec<&(f64, f64)> = points
+            .iter()
+            .filter(|p| p.0 > 0.0 && p.1.is_finite())
+            .collect();
+        for pair in ok.windows(2) {
+            line(
+                &mut img,
+                Point::new(x(pair[0].0), y(pair[0].1)),
+                Point::new(x(pair[1].0), y(pair[1].1)),
+                colour,
+                1,
+                LINE_AA,
+                0,
+            )?;
+        }
+        if let Some(end) = ok.last() {
+            circle(
+                &mut img,
+                Point::new(x(end.0), y(end.1)),
+                4,
+                colour,
+                FILLED,
+                LINE_AA,
+                0,
+            )?;
+            let short: String = name
+                .split_whitespace()
+                .filter(|w| *w != preset)
+                .collect::<Vec<_>>()
+                .join(" ");
+            text(
+                &mut img,
+                &short,
+                Point::new(x(end.0) + 6, y(end.1) - 4),
+                0.35,
+                colour,
+            )?;
+        }
+    }
+    for (k, (p, c)) in PRESET_COLOURS.iter().enumerate() {
+        text(
+            &mut img,
+            p,
+            Point::new(margin + 120 * k as i32, margin - 25),
+            0.55,
+            Scalar::new(c[0], c[1], c[2], 0.0),
+        )?;
+    }
+    text(
+        &mut img,
+        "accuracy (mm) against wall time (hull + stages; a point per stage)",
+        Point::new(w / 2 - 260, h - 20),
+        0.5,
+        black,
     )?;
     write_png(path, &img)
 }
