@@ -3,7 +3,7 @@
 #   make test   build and run the whole test suite
 # Both first make sure the Debian packages the build needs are installed.
 
-DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev clang libclang-dev cmake pkg-config
+DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev libhdf5-dev clang libclang-dev cmake pkg-config
 CARGO ?= cargo
 
 .PHONY: deps demo test bench bench-remesh bench-simulate clean
@@ -29,6 +29,8 @@ deps:
 demo: deps
 	$(CARGO) run --release -- demo --out demo-out
 
+# The tests also compare against OpenCV's own sample calibration (package opencv-doc).
+test: DEBIAN_PACKAGES += opencv-doc
 test: deps
 	$(CARGO) test --release
 

@@ -10,6 +10,7 @@ pub mod cli;
 pub mod decode;
 pub mod eval;
 pub mod hull;
+pub mod import;
 pub mod loss;
 pub mod mesh;
 pub mod patterns;

@@ -14,6 +14,7 @@
 //! camera = "camera.yml"         # paths relative to the scan folder
 //! screen = "screen.yml"
 //! turntable = "turntable.yml"
+//! # poses = "poses.yml"       # optional: per-view poses replacing the turntable's
 //! [views]
 //! angles_deg = [0.0, 5.0]       # turntable angle of each view, degrees
 //! [patterns]
@@ -48,6 +49,9 @@ pub struct CalibrationFiles {
     pub camera: PathBuf,
     pub screen: PathBuf,
     pub turntable: PathBuf,
+    /// Per-view world → camera poses that replace the turntable's (imported scans).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub poses: Option<PathBuf>,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -81,6 +85,8 @@ pub struct Scan {
     pub camera: Camera,
     pub screen: Screen,
     pub turntable: Turntable,
+    /// The views' poses when `calibration.poses` names a file (else the turntable's).
+    pub poses: Option<Vec<Isometry3<f64>>>,
 }
 
 /// Why a scan folder cannot be used.
@@ -186,12 +192,28 @@ impl Scan {
                 "inconsistent calibration: the camera lies on the turntable axis".into(),
             ));
         }
+        let poses = match &c.poses {
+            Some(p) => {
+                let poses = calib_io::read_view_poses(&dir.join(p))?;
+                if poses.len() != config.views.angles_deg.len() {
+                    return Err(bad(format!(
+                        "{} holds {} view poses for {} views",
+                        p.display(),
+                        poses.len(),
+                        config.views.angles_deg.len()
+                    )));
+                }
+                Some(poses)
+            }
+            None => None,
+        };
         Ok(Self {
             dir: dir.to_path_buf(),
             config,
             camera,
             screen,
             turntable,
+            poses,
         })
     }
 
@@ -205,6 +227,9 @@ impl Scan {
             &self.turntable.axis_point,
             &self.turntable.axis_dir,
         )?;
+        if let (Some(p), Some(poses)) = (&c.poses, &self.poses) {
+            calib_io::write_view_poses(&self.dir.join(p), poses)?;
+        }
         let path = self.dir.join("scan.toml");
         let text = toml::to_string_pretty(&self.config).expect("a scan config serialises");
         write_atomic(&path, |w| {
@@ -222,7 +247,10 @@ impl Scan {
 
     /// World → camera transform of every view.
     pub fn view_poses(&self) -> Vec<Isometry3<f64>> {
-        self.turntable.view_poses().expect("checked when opened")
+        match &self.poses {
+            Some(p) => p.clone(),
+            None => self.turntable.view_poses().expect("checked when opened"),
+        }
     }
 
     /// Folder of view `k`'s captures.

@@ -107,7 +107,9 @@ pub fn calibrate_turntable(
             images.len()
         );
     }
-    let (d0, c0) = initial_axis(&obs)?;
+    let poses: Vec<Isometry3<f64>> = obs.iter().map(|o| o.pose).collect();
+    let thetas: Vec<f64> = obs.iter().map(|o| o.theta).collect();
+    let (d0, c0) = axis_of_motions(&poses, Some(&thetas))?;
     let base0 = about_axis(&d0, &c0, -obs[0].theta) * obs[0].pose;
     let fit = Fit {
         obs: &obs,
@@ -150,32 +152,42 @@ pub fn calibrate_turntable(
     })
 }
 
-/// Axis direction from the relative rotations to the first image, and the axis point from the
-/// relative motions' fixed points (least squares), at the first board origin's height.
-fn initial_axis(obs: &[Observation]) -> Result<(Unit<Vector3<f64>>, Point3<f64>)> {
-    let first = &obs[0];
+/// The rotation axis of rigid motions (`poses[k]` = the rotation about the axis by
+/// θk − θ0 after `poses[0]`): its direction from the relative rotations to the first pose,
+/// oriented by `thetas` when given (else along the first clear rotation), and its point by
+/// least squares on the relative motions' fixed points, at the height of `poses[0]`'s origin.
+pub fn axis_of_motions(
+    poses: &[Isometry3<f64>],
+    thetas: Option<&[f64]>,
+) -> Result<(Unit<Vector3<f64>>, Point3<f64>)> {
+    let first = &poses[0];
     let mut sum = Vector3::zeros();
-    for o in &obs[1..] {
-        let dtheta = o.theta - first.theta;
-        let v = (o.pose.rotation * first.pose.rotation.inverse()).scaled_axis();
-        if dtheta.abs() > 1f64.to_radians() && v.norm() > 1e-3 {
-            sum += v.normalize() * dtheta.signum() * dtheta.abs();
+    for (k, p) in poses.iter().enumerate().skip(1) {
+        let v = (p.rotation * first.rotation.inverse()).scaled_axis();
+        let weight = match thetas {
+            Some(t) if (t[k] - t[0]).abs() > 1f64.to_radians() => t[k] - t[0],
+            Some(_) => continue,
+            None if sum.norm() > 0.0 => v.norm() * v.dot(&sum).signum(),
+            None => v.norm(),
+        };
+        if v.norm() > 1e-3 {
+            sum += v.normalize() * weight;
         }
     }
     let Some(d) = Unit::try_new(sum, 1e-9) else {
-        bail!("the board does not turn between the images: give images at angles at least a few degrees apart");
+        bail!("the poses do not turn: give views at angles at least a few degrees apart");
     };
-    let n = obs.len() - 1;
+    let n = poses.len() - 1;
     let mut a = DMatrix::zeros(3 * n + 1, 3);
     let mut b = DVector::zeros(3 * n + 1);
-    for (i, o) in obs[1..].iter().enumerate() {
-        let rel = o.pose * first.pose.inverse();
+    for (i, p) in poses[1..].iter().enumerate() {
+        let rel = p * first.inverse();
         let m = Matrix3::identity() - rel.rotation.to_rotation_matrix().into_inner();
         a.view_mut((3 * i, 0), (3, 3)).copy_from(&m);
         b.rows_mut(3 * i, 3).copy_from(&rel.translation.vector);
     }
     a.row_mut(3 * n).copy_from(&d.transpose());
-    b[3 * n] = d.dot(&first.pose.translation.vector);
+    b[3 * n] = d.dot(&first.translation.vector);
     let c = a
         .svd(true, true)
         .solve(&b, 1e-12)

@@ -24,6 +24,7 @@ mod decode;
 mod demo;
 mod eval;
 mod hull;
+mod import;
 mod info;
 mod patterns;
 mod reconstruct;
@@ -61,6 +62,8 @@ enum Command {
     Simulate(simulate::SimulateArgs),
     /// Isotropic remeshing to a target edge length.
     Remesh(remesh::RemeshArgs),
+    /// A scan folder from DRT's published HDF5 captures.
+    ImportDrt(import::ImportDrtArgs),
     /// The visual hull of a decoded scan's silhouettes.
     Hull(hull::HullArgs),
     /// The main job: optimise the mesh against a decoded scan, coarse to fine.
@@ -102,6 +105,7 @@ pub fn run() -> Result<()> {
         Command::Patterns(a) => patterns::run(&a),
         Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),
+        Command::ImportDrt(a) => import::run(&a),
         Command::Hull(a) => hull::run(&a),
         Command::Reconstruct(a) => reconstruct::run(&a),
         Command::Bench(b) => bench::run(&b),

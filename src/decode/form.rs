@@ -5,12 +5,15 @@
 //! - `view_NNN_monitor.png`: 16-bit, 4 channels: (u + 1)·s, (v + 1)·s of the decoded monitor
 //!   point (monitor pixels) and the cell widths along u and v (monitor pixels); 65535 where
 //!   nothing decodes;
+//! - `view_NNN_rays.bin` (imported scans, instead of the monitor image): per object pixel its
+//!   camera ray and its 3D target, camera frame (see [`write_rays`]);
 //! - `summary.json`: `fixed_point_scale` s and per-view figures, with the warning of any view that
 //!   could not be decoded (such a view has no mask).
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
+use nalgebra::{Point3, Vector3};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec4w};
 
 use super::ViewSummary;
@@ -36,6 +39,76 @@ pub struct DecodedView {
     pub mask: Vec<bool>,
     /// The decoded monitor point, where one decoded.
     pub targets: Vec<Option<MonitorTarget>>,
+    /// Imported scans: per pixel a ray and a 3D target, in place of `targets` (all `None`).
+    pub rays: Option<Vec<PixelRay>>,
+}
+
+/// A camera pixel's ray and the 3D point it sees on the monitor, camera frame, mm.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelRay {
+    /// Row-major pixel index.
+    pub pixel: u32,
+    /// Unit direction.
+    pub dir: Vector3<f64>,
+    pub target: Point3<f64>,
+}
+
+/// Path of view `k`'s rays in the decoded folder `dir`.
+pub fn rays_path(dir: &Path, k: usize) -> PathBuf {
+    dir.join(format!("view_{k:03}_rays.bin"))
+}
+
+const RAYS_MAGIC: &[u8; 8] = b"GSRAYS01";
+
+/// Writes view `k`'s rays: the 8 bytes `GSRAYS01`, the count (u64), then per ray the pixel index
+/// (u32) and direction and target (3 + 3 f32), all little-endian.
+pub fn write_rays(dir: &Path, k: usize, rays: &[PixelRay]) -> Result<()> {
+    let mut bytes = Vec::with_capacity(16 + rays.len() * 28);
+    bytes.extend_from_slice(RAYS_MAGIC);
+    bytes.extend_from_slice(&(rays.len() as u64).to_le_bytes());
+    for r in rays {
+        bytes.extend_from_slice(&r.pixel.to_le_bytes());
+        for v in r.dir.iter().chain(r.target.coords.iter()) {
+            bytes.extend_from_slice(&(*v as f32).to_le_bytes());
+        }
+    }
+    let path = rays_path(dir, k);
+    crate::util::atomic::write_atomic(&path, |w| w.write_all(&bytes))
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// Reads a rays file of a view with `pixels` pixels.
+pub fn read_rays(path: &Path, pixels: usize) -> Result<Vec<PixelRay>> {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let bad = || {
+        anyhow::anyhow!(
+            "{}: not a glasscan rays file (truncated or corrupt)",
+            path.display()
+        )
+    };
+    if bytes.len() < 16 || &bytes[..8] != RAYS_MAGIC {
+        return Err(bad());
+    }
+    let n = u64::from_le_bytes(bytes[8..16].try_into().expect("8 bytes")) as usize;
+    if bytes.len() != 16 + 28 * n {
+        return Err(bad());
+    }
+    let f = |b: &[u8]| f32::from_le_bytes(b.try_into().expect("4 bytes")) as f64;
+    bytes[16..]
+        .chunks_exact(28)
+        .map(|c| {
+            let pixel = u32::from_le_bytes(c[..4].try_into().expect("4 bytes"));
+            let v: Vec<f64> = c[4..].chunks_exact(4).map(f).collect();
+            if pixel as usize >= pixels || v.iter().any(|x| !x.is_finite()) {
+                return Err(bad());
+            }
+            Ok(PixelRay {
+                pixel,
+                dir: Vector3::new(v[0], v[1], v[2]),
+                target: Point3::new(v[3], v[4], v[5]),
+            })
+        })
+        .collect()
 }
 
 /// Path of view `k`'s mask in the decoded folder `dir`.
@@ -145,6 +218,18 @@ impl DecodedScan {
         let Some(mask) = self.mask(k)? else {
             return Ok(None);
         };
+        let n = (self.size.0 * self.size.1) as usize;
+        let rays = rays_path(&self.dir, k);
+        if !monitor_path(&self.dir, k).is_file() && rays.is_file() {
+            return Ok(Some(DecodedView {
+                view: k,
+                width: self.size.0,
+                height: self.size.1,
+                mask: mask.iter().map(|&b| b != 0).collect(),
+                targets: vec![None; n],
+                rays: Some(read_rays(&rays, n)?),
+            }));
+        }
         let path = monitor_path(&self.dir, k);
         let m = self.load(&path, opencv::core::CV_16UC4)?;
         let targets = m
@@ -165,6 +250,7 @@ impl DecodedScan {
             height: self.size.1,
             mask: mask.iter().map(|&b| b != 0).collect(),
             targets,
+            rays: None,
         }))
     }
 

@@ -1,6 +1,6 @@
 //! The refraction term's inputs from a decoded scan: per view, the camera ray of every object
 //! pixel with a decoded monitor point, that point in the world frame, and a weight from the
-//! decoder's uncertainty.
+//! decoder's uncertainty (1 for imported rays and 3D targets, which carry none).
 
 use anyhow::Result;
 use rayon::prelude::*;
@@ -29,21 +29,31 @@ pub fn scan_targets(scan: &Scan, views: &[usize]) -> Result<(Vec<ViewTargets>, V
             let to_world = poses[k].inverse();
             let screen = scan.screen.transformed(&to_world);
             let w = dv.width as usize;
-            let pixels = dv
-                .mask
-                .iter()
-                .zip(&dv.targets)
-                .enumerate()
-                .filter_map(|(i, (&m, t))| {
-                    let t = t.as_ref().filter(|_| m)?;
-                    let dir = scan.camera.pixel_ray((i % w) as f64, (i / w) as f64)?;
-                    Some(PixelTarget {
-                        dir: to_world * dir,
-                        target: screen.point(t.u, t.v),
-                        weight: weight(t),
+            let pixels = if let Some(rays) = &dv.rays {
+                rays.iter()
+                    .filter(|r| dv.mask[r.pixel as usize])
+                    .map(|r| PixelTarget {
+                        dir: to_world * r.dir,
+                        target: to_world * r.target,
+                        weight: 1.0,
                     })
-                })
-                .collect();
+                    .collect()
+            } else {
+                dv.mask
+                    .iter()
+                    .zip(&dv.targets)
+                    .enumerate()
+                    .filter_map(|(i, (&m, t))| {
+                        let t = t.as_ref().filter(|_| m)?;
+                        let dir = scan.camera.pixel_ray((i % w) as f64, (i / w) as f64)?;
+                        Some(PixelTarget {
+                            dir: to_world * dir,
+                            target: screen.point(t.u, t.v),
+                            weight: weight(t),
+                        })
+                    })
+                    .collect()
+            };
             Ok(Some(ViewTargets {
                 view: k,
                 eye: to_world * nalgebra::Point3::origin(),

@@ -8,6 +8,8 @@
 //! - `screen.yml`: `screen_width`, `screen_height` (pixels), `pitch_mm`, `rotation` (3×3) and
 //!   `translation_mm` (3×1): monitor frame → camera frame (see [`super::screen`]).
 //! - `turntable.yml`: `axis_point_mm` (3×1) and `axis_direction` (3×1), camera frame.
+//! - `poses.yml` (optional, for scans whose views are not turntable angles, e.g. imported ones):
+//!   `view_poses`, N×12: per view the world → camera rotation (row-major) and translation (mm).
 
 use std::path::Path;
 
@@ -306,5 +308,51 @@ pub fn write_turntable_axis(
     let mut w = Writer::new(path)?;
     w.matrix("axis_point_mm", 3, point.coords.as_slice())?;
     w.matrix("axis_direction", 3, dir.as_slice())?;
+    w.finish()
+}
+
+/// Reads a per-view poses file (world → camera of each view).
+pub fn read_view_poses(path: &Path) -> Result<Vec<Isometry3<f64>>, CalibError> {
+    let r = Reader::open(path)?;
+    let m = r.node("view_poses")?.mat().map_err(cv(path))?;
+    if m.cols() != 12 || m.rows() < 1 {
+        return Err(err(
+            path,
+            format!("'view_poses' is {}×{}, expected N×12", m.rows(), m.cols()),
+        ));
+    }
+    let rows = m.rows();
+    let v = r.matrix("view_poses", &[(rows, 12)])?;
+    v.chunks(12)
+        .enumerate()
+        .map(|(k, p)| {
+            let rm = Matrix3::from_row_slice(&p[..9]);
+            if (rm.transpose() * rm - Matrix3::identity()).amax() > 1e-6 || rm.determinant() < 0.0 {
+                return Err(err(path, format!("view {k}: not a rotation matrix")));
+            }
+            Ok(Isometry3::from_parts(
+                Translation3::new(p[9], p[10], p[11]),
+                UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(rm)),
+            ))
+        })
+        .collect()
+}
+
+/// Writes a per-view poses file.
+pub fn write_view_poses(path: &Path, poses: &[Isometry3<f64>]) -> Result<(), CalibError> {
+    let mut w = Writer::new(path)?;
+    let data: Vec<f64> = poses
+        .iter()
+        .flat_map(|p| {
+            let r = p.rotation.to_rotation_matrix().into_inner();
+            let t = p.translation.vector;
+            let mut row: Vec<f64> = (0..3)
+                .flat_map(|i| (0..3).map(move |j| r[(i, j)]))
+                .collect();
+            row.extend_from_slice(t.as_slice());
+            row
+        })
+        .collect();
+    w.matrix("view_poses", poses.len(), &data)?;
     w.finish()
 }

@@ -193,6 +193,7 @@ pub fn simulate(
                 camera: "camera.yml".into(),
                 screen: "screen.yml".into(),
                 turntable: "turntable.yml".into(),
+                poses: None,
             },
             views: Views {
                 angles_deg: turntable.angles_deg.clone(),
@@ -207,6 +208,7 @@ pub fn simulate(
         camera,
         screen,
         turntable,
+        poses: None,
     };
     let truth = out.join("truth");
     let mut dirs = vec![truth.clone()];

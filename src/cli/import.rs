@@ -1,0 +1,73 @@
+//! `glasscan import-drt FILE.h5 -o SCAN`.
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::import::drt::{import_drt, DrtCamera, DRT_VIEWS};
+
+#[derive(Args, Debug)]
+pub struct ImportDrtArgs {
+    /// DRT's HDF5 capture file of one object.
+    pub file: PathBuf,
+    /// The scan folder to write (decoded form with calibration).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// The camera that made the file (default: from the image size and the keys present).
+    #[arg(long, value_enum)]
+    pub camera: Option<CameraArg>,
+    /// Refractive index of the object (DRT's files do not record it).
+    #[arg(long, default_value_t = 1.4723)]
+    pub ior: f64,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum CameraArg {
+    Pointgrey,
+    Redmi,
+}
+
+pub fn run(a: &ImportDrtArgs) -> Result<()> {
+    if !(a.ior > 1.0 && a.ior.is_finite()) {
+        anyhow::bail!(
+            "--ior {}: a solid object's refractive index is above 1",
+            a.ior
+        );
+    }
+    let bar = ProgressBar::new(DRT_VIEWS as u64).with_style(
+        ProgressStyle::with_template("import [{bar:40}] {pos}/{len} views ({eta})")
+            .expect("static template"),
+    );
+    let camera = a.camera.map(|c| match c {
+        CameraArg::Pointgrey => DrtCamera::PointGrey,
+        CameraArg::Redmi => DrtCamera::Redmi,
+    });
+    let t0 = std::time::Instant::now();
+    let r = import_drt(&a.file, &a.output, camera, a.ior, |_| bar.inc(1))?;
+    bar.finish_and_clear();
+    outln!(
+        "imported {} ({:?}, {}×{}, {DRT_VIEWS} views) into {} in {:.1} s",
+        a.file.display(),
+        r.camera,
+        r.width,
+        r.height,
+        a.output.display(),
+        t0.elapsed().as_secs_f64()
+    );
+    outln!(
+        "{} object pixels, {} with a monitor point ({:.1} %); monitor points within {:.3} mm (RMS) of one plane",
+        r.object_pixels,
+        r.rays,
+        100.0 * r.rays as f64 / r.object_pixels.max(1) as f64,
+        r.plane_rms_mm
+    );
+    if r.camera == DrtCamera::PointGrey {
+        outln!(
+            "per-pixel ray origins within {:.3} mm of their view's camera centre",
+            r.max_origin_offset_mm
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,426 @@
+//! `glasscan import-drt`: DRT's published captures (one HDF5 file per object, 72 views) as a
+//! glasscan scan folder in decoded form.
+//!
+//! DRT's layout (read through libhdf5, view by view — the files are 2–3 GB):
+//! - `cam_proj` [72, 4, 4]: world → camera per view; `cam_k` [3, 3]: intrinsics;
+//! - `mask` [72, H, W]: 0/1 or 0/255;
+//! - `screen_position` [72, H·W, 3] or [72, H, W, 3]: per pixel the decoded monitor point, world
+//!   frame (mm); a row of zeros decoded nothing;
+//! - Point Grey files (1280×960) also hold `ray_origin` and `ray_dir` [72, H·W, 3] (world frame);
+//!   Redmi files (1920×1080) do not: rays go through integer pixel coordinates of `cam_k`.
+//!
+//! Written: `camera.yml` (`cam_k`, no distortion), `poses.yml` (the views' poses),
+//! `turntable.yml` (the axis the poses turn about, for reference), `screen.yml` (a virtual monitor
+//! on the plane fitted to the monitor points, 0.25 mm pixels), `scan.toml`, and in `decoded/` per
+//! view the mask and a rays file: each object pixel's ray and 3D target in the camera frame, read
+//! directly by the losses.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3,
+};
+
+use crate::calibrate::turntable::axis_of_motions;
+use crate::decode::form::{mask_path, rays_path, write_rays, write_summary, PixelRay};
+use crate::decode::ViewSummary;
+use crate::rig::{Camera, Screen, Turntable};
+use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
+use crate::util::fixed::FixedPoint;
+use crate::util::image::write_pixels;
+
+/// DRT's view count.
+pub const DRT_VIEWS: usize = 72;
+/// Pixel pitch of the virtual monitor, mm.
+const VIRTUAL_PITCH_MM: f64 = 0.25;
+
+/// Which of DRT's cameras made the file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DrtCamera {
+    /// 1280×960, per-pixel rays in the file.
+    PointGrey,
+    /// 1920×1080, rays from `cam_k` and `cam_proj`.
+    Redmi,
+}
+
+/// What an import found.
+#[derive(Clone, Debug)]
+pub struct ImportReport {
+    pub camera: DrtCamera,
+    pub width: u32,
+    pub height: u32,
+    /// Object pixels and those with a monitor point, over all views.
+    pub object_pixels: usize,
+    pub rays: usize,
+    /// RMS distance of the monitor points from their fitted plane, mm.
+    pub plane_rms_mm: f64,
+    /// Largest distance of a file's ray origin from its view's camera centre, mm (Point Grey).
+    pub max_origin_offset_mm: f64,
+}
+
+/// The file's datasets, checked.
+struct DrtFile {
+    file: hdf5::File,
+    path: PathBuf,
+    width: usize,
+    height: usize,
+    /// `screen_position` is [72, H, W, 3] rather than [72, H·W, 3].
+    grid_positions: bool,
+}
+
+impl DrtFile {
+    fn open(path: &Path) -> Result<Self> {
+        if !path.is_file() {
+            bail!("{}: no such file", path.display());
+        }
+        let file = hdf5::File::open(path)
+            .with_context(|| format!("{}: not an HDF5 file", path.display()))?;
+        let mut f = Self {
+            file,
+            path: path.to_path_buf(),
+            width: 0,
+            height: 0,
+            grid_positions: false,
+        };
+        f.expect("cam_proj", &[&[DRT_VIEWS, 4, 4]])?;
+        f.expect("cam_k", &[&[3, 3]])?;
+        let mask = f.shape("mask")?;
+        if mask.len() != 3 || mask[0] != DRT_VIEWS || mask[1] == 0 || mask[2] == 0 {
+            bail!(
+                "{}: dataset 'mask' has shape {mask:?}, expected [{DRT_VIEWS}, H, W]",
+                path.display()
+            );
+        }
+        (f.height, f.width) = (mask[1], mask[2]);
+        let (n, h, w) = (f.width * f.height, f.height, f.width);
+        let found = f.expect(
+            "screen_position",
+            &[&[DRT_VIEWS, n, 3], &[DRT_VIEWS, h, w, 3]],
+        )?;
+        f.grid_positions = found.len() == 4;
+        Ok(f)
+    }
+
+    fn shape(&self, key: &str) -> Result<Vec<usize>> {
+        let ds = self.file.dataset(key).map_err(|_| {
+            anyhow::anyhow!(
+                "{}: no dataset '{key}' (not a DRT capture file?)",
+                self.path.display()
+            )
+        })?;
+        Ok(ds.shape())
+    }
+
+    /// The shape of `key`, which must be one of `allowed`.
+    fn expect(&self, key: &str, allowed: &[&[usize]]) -> Result<Vec<usize>> {
+        let s = self.shape(key)?;
+        if !allowed.contains(&s.as_slice()) {
+            let want: Vec<String> = allowed.iter().map(|a| format!("{a:?}")).collect();
+            if s.first().is_some_and(|&v| v != DRT_VIEWS) && allowed[0].len() > 2 {
+                bail!(
+                    "{}: dataset '{key}' has shape {s:?}: {} views, but DRT's captures have {DRT_VIEWS} (expected {})",
+                    self.path.display(),
+                    s[0],
+                    want.join(" or ")
+                );
+            }
+            bail!(
+                "{}: dataset '{key}' has shape {s:?}, expected {}",
+                self.path.display(),
+                want.join(" or ")
+            );
+        }
+        Ok(s)
+    }
+
+    /// View `k`'s rows of a per-pixel [72, H·W, 3] (or [72, H, W, 3]) dataset, as f64 triples.
+    fn pixel_rows(&self, key: &str, k: usize) -> Result<Vec<[f64; 3]>> {
+        let ds = self.file.dataset(key)?;
+        let flat: Vec<f64> = if ds.ndim() == 4 {
+            ds.read_slice::<f64, _, ndarray::Ix3>(ndarray::s![k, .., .., ..])?
+                .iter()
+                .copied()
+                .collect()
+        } else {
+            ds.read_slice_2d::<f64, _>(ndarray::s![k, .., ..])?
+                .iter()
+                .copied()
+                .collect()
+        };
+        Ok(flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+    }
+
+    fn matrix4(&self, k: usize) -> Result<Matrix4<f64>> {
+        let m = self
+            .file
+            .dataset("cam_proj")?
+            .read_slice_2d::<f64, _>(ndarray::s![k, .., ..])?;
+        let v: Vec<f64> = m.iter().copied().collect();
+        Ok(Matrix4::from_row_slice(&v))
+    }
+}
+
+/// The rigid transform of a 4×4 world → camera matrix; `None` unless it is one.
+fn rigid(m: &Matrix4<f64>) -> Option<Isometry3<f64>> {
+    let r = m.fixed_view::<3, 3>(0, 0).into_owned();
+    let ok = (r.transpose() * r - Matrix3::identity()).amax() < 1e-4
+        && r.determinant() > 0.0
+        && (m.row(3) - nalgebra::RowVector4::new(0.0, 0.0, 0.0, 1.0)).amax() < 1e-9;
+    ok.then(|| {
+        Isometry3::from_parts(
+            Translation3::new(m[(0, 3)], m[(1, 3)], m[(2, 3)]),
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r)),
+        )
+    })
+}
+
+/// Imports `path` into the scan folder `out` (created); `camera` overrides the inference from
+/// the image size; `progress(k)` after each view.
+pub fn import_drt(
+    path: &Path,
+    out: &Path,
+    camera: Option<DrtCamera>,
+    ior: f64,
+    mut progress: impl FnMut(usize),
+) -> Result<ImportReport> {
+    let f = DrtFile::open(path)?;
+    let (w, h) = (f.width, f.height);
+    let kind = camera.unwrap_or(
+        if (w, h) == (1920, 1080) || !f.file.link_exists("ray_dir") {
+            DrtCamera::Redmi
+        } else {
+            DrtCamera::PointGrey
+        },
+    );
+    if kind == DrtCamera::PointGrey {
+        for key in ["ray_origin", "ray_dir"] {
+            f.expect(key, &[&[DRT_VIEWS, w * h, 3], &[DRT_VIEWS, h, w, 3]])?;
+        }
+    }
+    let k: Vec<f64> = f
+        .file
+        .dataset("cam_k")?
+        .read_2d::<f64>()?
+        .iter()
+        .copied()
+        .collect();
+    let cam = Camera {
+        width: w as u32,
+        height: h as u32,
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+        dist: [0.0; 5],
+    };
+    if !(cam.fx > 0.0 && cam.fy > 0.0 && k[1] == 0.0 && k[3] == 0.0 && k[6..] == [0.0, 0.0, 1.0]) {
+        bail!(
+            "{}: 'cam_k' is not of the form [fx 0 cx; 0 fy cy; 0 0 1]: {k:?}",
+            path.display()
+        );
+    }
+    let decoded = out.join("decoded");
+    std::fs::create_dir_all(&decoded)
+        .with_context(|| format!("cannot create {}", decoded.display()))?;
+
+    let mut poses = Vec::with_capacity(DRT_VIEWS);
+    let mut summaries = Vec::with_capacity(DRT_VIEWS);
+    let (mut object_pixels, mut rays_total, mut max_origin) = (0usize, 0usize, 0.0f64);
+    // Plane fit of the monitor points (camera frame): count, sum, sum of outer products.
+    let (mut n, mut sum, mut outer) = (0.0, Vector3::zeros(), Matrix3::zeros());
+    for v in 0..DRT_VIEWS {
+        let pose = rigid(&f.matrix4(v)?).with_context(|| {
+            format!(
+                "{}: cam_proj[{v}] is not a rigid world → camera transform",
+                path.display()
+            )
+        })?;
+        let mask: Vec<u8> = f
+            .file
+            .dataset("mask")?
+            .read_slice_2d::<f64, _>(ndarray::s![v, .., ..])?
+            .iter()
+            .map(|&m| if m > 0.0 { 255 } else { 0 })
+            .collect();
+        let targets = f.pixel_rows("screen_position", v)?;
+        let (origins, dirs) = if kind == DrtCamera::PointGrey {
+            (
+                Some(f.pixel_rows("ray_origin", v)?),
+                Some(f.pixel_rows("ray_dir", v)?),
+            )
+        } else {
+            (None, None)
+        };
+        let eye = pose.inverse() * Point3::origin();
+        let mut rays = Vec::new();
+        let mut objects = 0;
+        for (i, t) in targets.iter().enumerate() {
+            if mask[i] == 0 {
+                continue;
+            }
+            objects += 1;
+            if t.iter().all(|&c| c == 0.0) || t.iter().any(|c| !c.is_finite()) {
+                continue;
+            }
+            let dir = match &dirs {
+                Some(d) => {
+                    let o = origins.as_ref().expect("read with the directions")[i];
+                    max_origin = max_origin.max((Point3::from(o) - eye).norm());
+                    pose.rotation * Vector3::from(d[i])
+                }
+                None => cam
+                    .pixel_ray((i % w) as f64, (i / w) as f64)
+                    .context("pixel ray")?,
+            };
+            let Some(dir) = dir.try_normalize(1e-12) else {
+                continue;
+            };
+            let target = pose * Point3::from(*t);
+            n += 1.0;
+            sum += target.coords;
+            outer += target.coords * target.coords.transpose();
+            rays.push(PixelRay {
+                pixel: i as u32,
+                dir,
+                target,
+            });
+        }
+        write_pixels(&mask_path(&decoded, v), w as u32, h as u32, &mask)?;
+        write_rays(&decoded, v, &rays)?;
+        object_pixels += objects;
+        rays_total += rays.len();
+        summaries.push(ViewSummary {
+            view: v,
+            object_pixels: objects,
+            decoded_share: rays.len() as f64 / objects.max(1) as f64,
+            complete_share: 1.0,
+            warning: None,
+        });
+        poses.push(pose);
+        progress(v);
+    }
+    if n < 3.0 {
+        bail!("{}: no object pixel has a monitor point (screen_position is all zero inside the masks)", path.display());
+    }
+    let screen = virtual_screen(&decoded, n, &sum, &outer)?;
+    let plane_rms_mm = plane_rms(&decoded, &screen)?;
+
+    let (axis_dir, axis_point) = axis_of_motions(&poses, None)?;
+    let angles_deg: Vec<f64> = poses
+        .iter()
+        .map(|p| {
+            let v = (p.rotation * poses[0].rotation.inverse()).scaled_axis();
+            (v.norm() * v.dot(&axis_dir).signum())
+                .to_degrees()
+                .rem_euclid(360.0)
+        })
+        .collect();
+    let scan = Scan {
+        dir: out.to_path_buf(),
+        config: ScanConfig {
+            ior,
+            calibration: CalibrationFiles {
+                camera: "camera.yml".into(),
+                screen: "screen.yml".into(),
+                turntable: "turntable.yml".into(),
+                poses: Some("poses.yml".into()),
+            },
+            views: Views {
+                angles_deg: angles_deg.clone(),
+            },
+            patterns: Patterns {
+                kind: PatternKind::Graycode,
+                width: screen.width_px,
+                height: screen.height_px,
+                phase_shift: None,
+            },
+        },
+        camera: cam,
+        screen: screen.clone(),
+        turntable: Turntable {
+            axis_point,
+            axis_dir,
+            angles_deg,
+        },
+        poses: Some(poses),
+    };
+    scan.save()?;
+    write_summary(
+        &decoded,
+        &FixedPoint::for_screen(screen.width_px, screen.height_px),
+        &summaries,
+    )?;
+    Ok(ImportReport {
+        camera: kind,
+        width: w as u32,
+        height: h as u32,
+        object_pixels,
+        rays: rays_total,
+        plane_rms_mm,
+        max_origin_offset_mm: max_origin,
+    })
+}
+
+/// A monitor on the least-squares plane of the targets, facing away from the camera, its
+/// columns along the camera's x, covering every target (one pass over the written rays files).
+fn virtual_screen(
+    decoded: &Path,
+    n: f64,
+    sum: &Vector3<f64>,
+    outer: &Matrix3<f64>,
+) -> Result<Screen> {
+    let centroid = sum / n;
+    let cov = outer / n - centroid * centroid.transpose();
+    let eig = cov.symmetric_eigen();
+    let (i_min, _) = eig.eigenvalues.argmin();
+    let mut z: Vector3<f64> = eig.eigenvectors.column(i_min).into_owned();
+    if z.dot(&centroid) < 0.0 {
+        z = -z;
+    }
+    let x = (Vector3::x() - z * z.x)
+        .try_normalize(1e-9)
+        .unwrap_or_else(Vector3::y);
+    let y = z.cross(&x);
+    let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(
+        Matrix3::from_columns(&[x, y, z]),
+    ));
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for_each_target(decoded, |t| {
+        let d = t - Point3::from(centroid);
+        for (a, axis) in [x, y].iter().enumerate() {
+            lo[a] = lo[a].min(d.dot(axis));
+            hi[a] = hi[a].max(d.dot(axis));
+        }
+    })?;
+    let origin = centroid + x * lo[0] + y * lo[1];
+    let size = |a: usize| ((hi[a] - lo[a]) / VIRTUAL_PITCH_MM).ceil() as u32 + 1;
+    Ok(Screen {
+        width_px: size(0),
+        height_px: size(1),
+        pitch_mm: VIRTUAL_PITCH_MM,
+        pose: Isometry3::from_parts(Translation3::from(origin), rot),
+    })
+}
+
+/// RMS distance of the targets from the screen's plane, mm.
+fn plane_rms(decoded: &Path, screen: &Screen) -> Result<f64> {
+    let inv = screen.pose.inverse();
+    let (mut n, mut s) = (0.0f64, 0.0f64);
+    for_each_target(decoded, |t| {
+        n += 1.0;
+        s += (inv * t).z.powi(2);
+    })?;
+    Ok((s / n.max(1.0)).sqrt())
+}
+
+/// Calls `f` with every target of the rays files in `decoded` (camera frame).
+fn for_each_target(decoded: &Path, mut f: impl FnMut(Point3<f64>)) -> Result<()> {
+    for v in 0..DRT_VIEWS {
+        let path = rays_path(decoded, v);
+        for r in crate::decode::form::read_rays(&path, usize::MAX)? {
+            f(r.target);
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,3 @@
+//! Other projects' data as glasscan scan folders.
+
+pub mod drt;
