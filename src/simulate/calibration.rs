@@ -14,18 +14,15 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
-use opencv::core::{Mat, MatTraitConst, Size};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::SimulateOptions;
+use super::{write_sensor_image, SimulateOptions};
 use crate::calibrate::board::Board;
 use crate::rig::Camera;
 use crate::scan::Scan;
-use crate::util::image::write_png;
 
 /// Board images for the camera.
 pub const CAMERA_IMAGES: usize = 60;
@@ -182,30 +179,13 @@ fn render_set(
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     poses.par_iter().enumerate().try_for_each(|(k, pose)| {
         let mut img = render_board(cam, pose, b);
-        if o.noise > 0.0 {
-            let mut rng = ChaCha8Rng::seed_from_u64(seed.wrapping_add(k as u64));
-            let normal = Normal::new(0.0, o.noise).expect("positive sigma");
-            for p in &mut img {
-                *p += normal.sample(&mut rng) as f32;
-            }
-        }
-        let bytes: Vec<u8> = img
-            .iter()
-            .map(|v| v.round().clamp(0.0, 255.0) as u8)
-            .collect();
-        let mat = Mat::new_rows_cols_with_data(cam.height as i32, cam.width as i32, &bytes)?;
-        let mut out = mat.try_clone()?;
-        if o.blur_px > 0.0 {
-            opencv::imgproc::gaussian_blur(
-                &mat,
-                &mut out,
-                Size::new(0, 0),
-                o.blur_px,
-                o.blur_px,
-                opencv::core::BORDER_REPLICATE,
-            )?;
-        }
-        write_png(&dir.join(format!("board_{k:02}.png")), &out)
+        write_sensor_image(
+            &dir.join(format!("board_{k:02}.png")),
+            &mut img,
+            (cam.width, cam.height),
+            o,
+            seed.wrapping_add(k as u64),
+        )
     })
 }
 

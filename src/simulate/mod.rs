@@ -365,32 +365,44 @@ fn write_captures(
                 (Some(p), Some(j)) => shade_phase(samples, o.spp, p, j as u32),
                 _ => shade(samples, o.spp, code, i),
             };
-            if o.noise > 0.0 {
-                let mut rng =
-                    ChaCha8Rng::seed_from_u64(seed.wrapping_mul(1000).wrapping_add(i as u64));
-                let normal = Normal::new(0.0, o.noise).expect("positive sigma");
-                for p in &mut img {
-                    *p += normal.sample(&mut rng) as f32;
-                }
-            }
-            let bytes: Vec<u8> = img
-                .iter()
-                .map(|v| v.round().clamp(0.0, 255.0) as u8)
-                .collect();
-            let mat = Mat::new_rows_cols_with_data(o.height as i32, o.width as i32, &bytes)?;
-            let mut out = mat.try_clone()?;
-            if o.blur_px > 0.0 {
-                opencv::imgproc::gaussian_blur(
-                    &mat,
-                    &mut out,
-                    Size::new(0, 0),
-                    o.blur_px,
-                    o.blur_px,
-                    opencv::core::BORDER_REPLICATE,
-                )?;
-            }
-            write_png(&dir.join(name), &out)
+            let rng_seed = seed.wrapping_mul(1000).wrapping_add(i as u64);
+            write_sensor_image(&dir.join(name), &mut img, (o.width, o.height), o, rng_seed)
         })
+}
+
+/// Adds the sensor noise (seeded by `rng_seed`) to `img` (grey levels, row-major), rounds it
+/// to 8 bits, blurs it and writes it as a PNG.
+pub(crate) fn write_sensor_image(
+    path: &Path,
+    img: &mut [f32],
+    (width, height): (u32, u32),
+    o: &SimulateOptions,
+    rng_seed: u64,
+) -> Result<()> {
+    if o.noise > 0.0 {
+        let mut rng = ChaCha8Rng::seed_from_u64(rng_seed);
+        let normal = Normal::new(0.0, o.noise).expect("positive sigma");
+        for p in img.iter_mut() {
+            *p += normal.sample(&mut rng) as f32;
+        }
+    }
+    let bytes: Vec<u8> = img
+        .iter()
+        .map(|v| v.round().clamp(0.0, 255.0) as u8)
+        .collect();
+    let mat = Mat::new_rows_cols_with_data(height as i32, width as i32, &bytes)?;
+    let mut out = mat.try_clone()?;
+    if o.blur_px > 0.0 {
+        opencv::imgproc::gaussian_blur(
+            &mat,
+            &mut out,
+            Size::new(0, 0),
+            o.blur_px,
+            o.blur_px,
+            opencv::core::BORDER_REPLICATE,
+        )?;
+    }
+    write_png(path, &out)
 }
 
 /// Ground truth of one view, as 16-bit PNGs (read with OpenCV `imread(…, IMREAD_UNCHANGED)`,
