@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use nalgebra::{Point2, Point3};
-use opencv::core::{Mat, MatTraitConst, Point2f, Size, TermCriteria, TermCriteria_Type, Vector};
+use opencv::core::{Mat, MatTraitConst, Point2f, Size, Vector};
 
 /// A chessboard: inner corners per row (`cols`) and per column (`rows`), square size in mm.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -57,11 +57,7 @@ impl Board {
         if !opencv::calib3d::find_chessboard_corners(image, size, &mut corners, flags)? {
             return Ok(None);
         }
-        let criteria = TermCriteria::new(
-            TermCriteria_Type::EPS as i32 + TermCriteria_Type::COUNT as i32,
-            30,
-            1e-4,
-        )?;
+        let criteria = super::criteria(30, 1e-4)?;
         opencv::imgproc::corner_sub_pix(
             image,
             &mut corners,

@@ -5,10 +5,7 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Result};
-use opencv::core::{
-    Mat, MatTraitConst, MatTraitConstManual, Point2f, Point3f, Size, TermCriteria,
-    TermCriteria_Type, Vector,
-};
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Point2f, Point3f, Size, Vector};
 
 use super::board::{Board, BoardImage};
 use crate::rig::calib_io::CameraRecord;
@@ -114,11 +111,7 @@ pub fn calibrate_camera(
     let mut dist = Mat::from_slice(&[0.0f64; 5])?.reshape(1, 5)?.try_clone()?;
     let (mut rvecs, mut tvecs) = (Vector::<Mat>::new(), Vector::<Mat>::new());
     let (mut sd_in, mut sd_ex, mut per_view) = (Mat::default(), Mat::default(), Mat::default());
-    let criteria = TermCriteria::new(
-        TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,
-        30,
-        f64::EPSILON,
-    )?;
+    let criteria = super::criteria(30, f64::EPSILON)?;
     let rms = opencv::calib3d::calibrate_camera_extended(
         &object_points,
         &image_points,

@@ -13,6 +13,16 @@ use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Point2d, Point3d, Ve
 
 use crate::rig::Camera;
 
+/// OpenCV's stopping rule: at most `iterations`, or a change below `eps`.
+pub fn criteria(iterations: i32, eps: f64) -> Result<opencv::core::TermCriteria> {
+    use opencv::core::{TermCriteria, TermCriteria_Type};
+    Ok(TermCriteria::new(
+        TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,
+        iterations,
+        eps,
+    )?)
+}
+
 /// OpenCV's camera matrix and distortion vector (5 × 1) of `c`.
 pub fn camera_mats(c: &Camera) -> Result<(Mat, Mat)> {
     let k = Mat::from_slice_2d(&[[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]])?;

@@ -5,7 +5,7 @@
 
 use anyhow::{bail, Result};
 use nalgebra::{Isometry3, Point3, Vector3};
-use opencv::core::{Mat, MatTraitConst, Point2d, Point3d, TermCriteria, TermCriteria_Type, Vector};
+use opencv::core::{Mat, MatTraitConst, Point2d, Point3d, Vector};
 use rayon::prelude::*;
 
 use super::{camera_mats, pose_from_vectors, reprojection_rms};
@@ -127,11 +127,7 @@ pub fn calibrate_screen(
         .collect::<Vec<_>>()
         .into_iter()
         .unzip();
-    let criteria = TermCriteria::new(
-        TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32,
-        100,
-        1e-12,
-    )?;
+    let criteria = super::criteria(100, 1e-12)?;
     opencv::calib3d::solve_pnp_refine_lm(
         &obj_in, &img_in, &k, &dist, &mut rvec, &mut tvec, criteria,
     )?;
