@@ -4,7 +4,7 @@
 
 use std::path::Path;
 use std::process::{Command, Output};
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 
 use glasscan::decode::form::DecodedScan;
 use glasscan::loss::refraction::ViewTargets;
@@ -15,11 +15,22 @@ use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::{Point3, Vector3};
 use ndarray::{Array2, Array3, Array4};
 
+/// Held while this process has an HDF5 file open and while it starts a child. HDF5 opens files
+/// without close-on-exec and locks them (flock): a child started by a parallel test while a file
+/// is open inherits the descriptor, and with it the lock, until that child exits.
+static HDF5_OPEN: Mutex<()> = Mutex::new(());
+
 fn glasscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args)
-        .output()
-        .expect("run glasscan")
+    let child = {
+        let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        Command::new(env!("CARGO_BIN_EXE_glasscan"))
+            .args(args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("run glasscan")
+    };
+    child.wait_with_output().expect("run glasscan")
 }
 
 fn assert_fails_with(o: &Output, needle: &str) {
@@ -85,6 +96,7 @@ const POINT_GREY: Layout = Layout {
 
 /// Writes `scan` in DRT's layout; returns the number of rows zeroed.
 fn export_drt(scan: &Scan, path: &Path, l: Layout) -> usize {
+    let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
     let (w, h) = (scan.camera.width as usize, scan.camera.height as usize);
     let decoded = DecodedScan::open(&scan.dir, (w as u32, h as u32)).unwrap();
     let poses = scan.view_poses();
@@ -382,6 +394,7 @@ fn bad_files_name_the_key_and_shape() {
     let file = tmp.path().join("shape.h5");
     export_drt(src, &file, POINT_GREY);
     {
+        let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
         let f = hdf5::File::open_rw(&file).unwrap();
         f.unlink("screen_position").unwrap();
         let a = Array3::<f32>::zeros((VIEWS, 10, 3));
