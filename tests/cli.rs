@@ -186,6 +186,53 @@ fn eval_prints_a_table_and_writes_exactly_the_documented_json_keys() {
 }
 
 #[test]
+fn eval_error_map_colours_the_distance_to_the_reference() {
+    use opencv::core::{MatTraitConst, Vec3b};
+    use opencv::imgcodecs::{imread, IMREAD_COLOR};
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b, map) = (
+        dir.path().join("a.ply"),
+        dir.path().join("b.ply"),
+        dir.path().join("map.png"),
+    );
+    // The result lies 0.3 mm outside the reference everywhere: with red at 0.6 mm every visible
+    // point is mid-scale (green), darkened only by the shading.
+    write_mesh(&a, &icosphere(20.3, 5)).unwrap();
+    write_mesh(&b, &icosphere(20.0, 5)).unwrap();
+    let run = |max: &str| {
+        glasscan(&[
+            "eval",
+            a.to_str().unwrap(),
+            "--reference",
+            b.to_str().unwrap(),
+            "--samples",
+            "20000",
+            "--error-map",
+            map.to_str().unwrap(),
+            "--error-max-mm",
+            max,
+        ])
+    };
+    let o = run("0.6");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let img = imread(map.to_str().unwrap(), IMREAD_COLOR).unwrap();
+    assert_eq!((img.cols(), img.rows()), (3 * 420, 2 * 420 + 70));
+    for k in 0..6 {
+        // The centre of each panel faces the viewer squarely: unshaded mid-scale green.
+        let (x, y) = ((k % 3) * 420 + 210, (k / 3) * 420 + 210);
+        let c = *img.at_2d::<Vec3b>(y, x).unwrap();
+        assert!(
+            c[1] > 180 && c[0] < 80 && c[2] < 80,
+            "panel {k} centre {c:?}"
+        );
+        // A panel corner is background.
+        let c = *img.at_2d::<Vec3b>(y - 200, x - 200).unwrap();
+        assert_eq!(c, Vec3b::from([255, 255, 255]), "panel {k} corner");
+    }
+    assert_clean_failure(&run("0"), "--error-max-mm");
+}
+
+#[test]
 fn bench_trace_runs_and_prints_ratios() {
     let o = glasscan(&[
         "bench",

@@ -162,7 +162,7 @@ fn analytic(c: &Case) -> Vec<V3> {
     let g = pixel_gradient(&state(&c.mesh, &vn), &c.s, &c.view, &c.px, &c.prims).unwrap();
     let mut acc = Accumulator::new(c.mesh.positions.len(), vn.is_some());
     let mut contributions = Contributions::default();
-    contributions.push_pixel(&g);
+    contributions.push_pixel(&g, c.px.weight);
     acc.add(&[contributions]);
     acc.finish(&c.mesh)
 }

@@ -8,7 +8,7 @@ use std::sync::{Mutex, OnceLock};
 
 use glasscan::decode::form::DecodedScan;
 use glasscan::loss::refraction::ViewTargets;
-use glasscan::loss::targets::scan_targets;
+use glasscan::loss::targets::{scan_targets, TargetWeights};
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::scan::Scan;
 use glasscan::simulate::{simulate, SimulateOptions};
@@ -200,7 +200,9 @@ fn export_drt(scan: &Scan, path: &Path, l: Layout) -> usize {
 
 fn all_targets(scan: &Scan) -> Vec<ViewTargets> {
     let views: Vec<usize> = (0..VIEWS).collect();
-    scan_targets(scan, &views).unwrap().0
+    scan_targets(scan, &views, TargetWeights::Uniform)
+        .unwrap()
+        .0
 }
 
 /// The imported inputs equal the source's (f32 precision), pixel for pixel, minus `zeroed`.

@@ -39,8 +39,8 @@ fn small_scan_with_ior(dir: &Path, ior: f64) {
     .unwrap();
 }
 
-const CONFIG: &str =
-    "stages = 3\nstart_edge = 0.1\nfinal_edge = 0.04\niterations = 8\nrefraction_views = 2\n";
+/// One warm-up stage (DRT's, 200 iterations) and three of Large Steps.
+const CONFIG: &str = "warmup_stages = 1\nstages = 3\nstart_edge = 0.1\nfinal_edge = 0.04\niterations = 8\nrefraction_views = 2\n";
 
 #[test]
 fn a_killed_run_resumes_to_the_same_result() {
@@ -68,7 +68,8 @@ fn a_killed_run_resumes_to_the_same_result() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 
-    // Kill the second run as soon as its first stage is saved (it is then in stage 2).
+    // Kill the second run as soon as its first (warm-up) stage is saved: it is then in stage 2,
+    // the first of Large Steps.
     let killed = dir.path().join("killed");
     let mut child = Command::new(env!("CARGO_BIN_EXE_glasscan"))
         .args(args(&killed))
@@ -108,13 +109,13 @@ fn a_killed_run_resumes_to_the_same_result() {
         std::fs::read(killed.join("result.ply")).unwrap(),
         "resumed result differs from the uninterrupted one"
     );
-    for f in ["report.json", "loss.png", "hull.ply", "stage_02.ply"] {
+    for f in ["report.json", "loss.png", "hull.ply", "stage_03.ply"] {
         assert!(whole.join(f).is_file(), "{f}");
     }
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(whole.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["settings"]["seed"], 7);
-    assert_eq!(report["stages"].as_array().unwrap().len(), 3);
+    assert_eq!(report["stages"].as_array().unwrap().len(), 4);
 }
 
 #[test]
@@ -185,7 +186,7 @@ fn extreme_refractive_indices_reconstruct_sensibly() {
             accuracy.is_finite() && accuracy < 0.86,
             "ior {ior}: accuracy {accuracy} mm"
         );
-        let used = report["stages"][2]["refraction_rays_used"]
+        let used = report["stages"][3]["refraction_rays_used"]
             .as_u64()
             .unwrap();
         assert!(used > 0, "ior {ior}: no refraction ray used");

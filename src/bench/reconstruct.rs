@@ -215,7 +215,7 @@ fn run_one(
     }
     let views = spread_views(n, scan.config.views.angles_deg.len());
     let t0 = Instant::now();
-    let (inputs, _) = reconstruct::load_inputs(scan, &views)?;
+    let (inputs, _) = reconstruct::load_inputs(scan, &views, settings.target_weights)?;
     let (hull, _) = visual_hull(
         &inputs.silhouettes,
         &HullOptions::default(),
@@ -270,7 +270,7 @@ fn run_one(
         seconds,
         seconds_hull,
         stages_done: s + 1,
-        stages: settings.stages,
+        stages: settings.total_stages(),
         accuracy_mm: e.accuracy_mm,
         completeness_mm: e.completeness_mm,
         fscore_05: f(0.5),

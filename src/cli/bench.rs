@@ -182,7 +182,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
     crate::mesh::validate::ensure_valid(&mesh)
         .map_err(|e| anyhow::anyhow!("{}: {e}", mesh_path.display()))?;
     let t0 = std::time::Instant::now();
-    let (targets, skipped) = crate::loss::targets::scan_targets(&scan, &views)?;
+    let (targets, skipped) = crate::loss::targets::scan_targets(&scan, &views, Default::default())?;
     let load_s = t0.elapsed().as_secs_f64();
     let s = RefractionSettings {
         ior: scan.config.ior,

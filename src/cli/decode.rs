@@ -39,9 +39,10 @@ pub struct DecodeArgs {
     /// Mask rule 1: decoded shift from the background beyond the cells, monitor pixels.
     #[arg(long = "shift-px", default_value_t = 2.0)]
     pub shift_px: f32,
-    /// Mask rule 3: relative drop of the white image against the background's.
-    #[arg(long = "white-drop", default_value_t = 0.15)]
-    pub white_drop: f32,
+    /// Mask rule 3: relative drop of the white image against the background's (default: half
+    /// the normal-incidence Fresnel loss of the scan's IOR, or 5 × the view's white-ratio noise)
+    #[arg(long = "white-drop")]
+    pub white_drop: Option<f32>,
     /// Object regions smaller than this are dropped, pixels.
     #[arg(long = "min-component-px", default_value_t = 50)]
     pub min_component_px: i32,

@@ -94,7 +94,9 @@ pub fn run(args: &DemoArgs) -> Result<()> {
 
     outln!("== 4. visual hull (1 mm voxels)");
     let t = Instant::now();
-    let (inputs, warnings) = load_inputs(&scan, &views)?;
+    let mut settings = Settings::preset("fast").expect("a built-in preset");
+    settings.seed = args.seed;
+    let (inputs, warnings) = load_inputs(&scan, &views, settings.target_weights)?;
     for w in &warnings {
         eprintln!("warning: {w}");
     }
@@ -112,8 +114,6 @@ pub fn run(args: &DemoArgs) -> Result<()> {
 
     outln!("== 5. reconstruct (preset fast)");
     let t = Instant::now();
-    let mut settings = Settings::preset("fast").expect("a built-in preset");
-    settings.seed = args.seed;
     let bars = Bars::new();
     let rec = args.out.join("reconstruction");
     let (ck, result) = reconstruct::run(
@@ -127,7 +127,11 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     )?;
     bars.bar.finish_and_clear();
     write_mesh(&rec.join("result.ply"), &result)?;
-    crate::reconstruct::plot::loss_plot(&rec.join("loss.png"), &ck.history)?;
+    crate::reconstruct::plot::loss_plot(
+        &rec.join("loss.png"),
+        &ck.history,
+        settings.warmup_stages,
+    )?;
     outln!("   {:.1} s", t.elapsed().as_secs_f64());
 
     outln!("== 6. evaluate against the object as placed in the scan");

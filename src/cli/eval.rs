@@ -5,8 +5,10 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::Args;
 
+use crate::eval::error_map::write_error_map;
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::mesh::io::read_mesh;
+use crate::trace::{BuildMode, Device, Scene};
 
 #[derive(Args, Debug)]
 pub struct EvalArgs {
@@ -31,6 +33,12 @@ pub struct EvalArgs {
     /// Also write the metrics as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Also write an error map: the result from six sides coloured by distance to the reference.
+    #[arg(long = "error-map")]
+    pub error_map: Option<PathBuf>,
+    /// The distance shown red in the error map, mm (default: the largest F-score threshold).
+    #[arg(long = "error-max-mm")]
+    pub error_max_mm: Option<f64>,
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
@@ -65,6 +73,23 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     out!("{}", table(&report, args.seed));
     if let Some(path) = &args.json {
         super::write_json(path, &report.to_json())?;
+    }
+    if let Some(path) = &args.error_map {
+        let max_mm = args
+            .error_max_mm
+            .unwrap_or_else(|| args.thresholds_mm.iter().copied().fold(0.0, f64::max));
+        if !(max_mm.is_finite() && max_mm > 0.0) {
+            bail!("--error-max-mm {max_mm}: it must be a positive number of mm");
+        }
+        let device = Device::new()?;
+        write_error_map(
+            path,
+            &result,
+            &Scene::new(&device, &result, BuildMode::Static)?,
+            &Scene::new(&device, &reference, BuildMode::Static)?,
+            max_mm,
+        )?;
+        outln!("error map        {}", path.display());
     }
     Ok(())
 }

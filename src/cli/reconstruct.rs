@@ -125,7 +125,7 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
         settings.seed = seed;
     }
     settings.check().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let (inputs, warnings) = reconstruct::load_inputs(&scan, &views)?;
+    let (inputs, warnings) = reconstruct::load_inputs(&scan, &views, settings.target_weights)?;
     for w in &warnings {
         eprintln!("warning: {w}");
     }
@@ -175,7 +175,11 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
     )?;
     bars.bar.finish_and_clear();
     write_mesh(&a.output.join("result.ply"), &mesh)?;
-    loss_plot(&a.output.join("loss.png"), &ck.history)?;
+    loss_plot(
+        &a.output.join("loss.png"),
+        &ck.history,
+        settings.warmup_stages,
+    )?;
     let truth = a.scan.join("ground_truth.ply");
     let evaluation = if truth.is_file() {
         let reference = read_mesh(&truth)?;
@@ -199,7 +203,7 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
         "reconstructed {} ({} preset, {} stages) -> {}: {} faces in {:.1} s of stages",
         a.scan.display(),
         settings.preset,
-        settings.stages,
+        settings.total_stages(),
         a.output.join("result.ply").display(),
         mesh.faces.len(),
         ck.stages.iter().map(|s| s.seconds).sum::<f64>()

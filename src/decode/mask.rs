@@ -7,12 +7,20 @@
 //! 2. it decodes to nothing (no reliable bit on an axis, or unlit by OpenCV's shadow test) where
 //!    the background decodes (light lost: total internal reflection, missed monitor);
 //! 3. its white-image intensity is below `1 − white_drop` of the background's (absorption and
-//!    Fresnel losses; only with a captured background).
+//!    Fresnel losses; only with a captured background). Every path through the object loses at
+//!    least what two interfaces reflect at normal incidence (Fresnel transmittance is highest
+//!    there), so by default `white_drop` is half that loss for the scan's refractive index, or
+//!    five times the white ratio's noise in this view if that is larger ([`auto_white_drop`]).
+//!    This catches rays that cross the glass nearly undeflected, which rule 1 cannot see.
+//!
+//! Then the edge is made sub-pixel honest ([`trim_mixed_edge`]): an undecoded edge pixel (a
+//! mixture of what the object and the background show) is object only if it is more than half
+//! covered, judged from its white ratio. Last, connected object regions smaller than
+//! `min_component_px` are dropped and holes smaller than `max_hole_px` filled.
 //!
 //! Without a captured background, the background point is predicted from the calibrated screen
-//! pose (the camera ray of each pixel meets the monitor plane) and rule 3 is not used. Then
-//! connected object regions smaller than `min_component_px` are dropped and holes smaller than
-//! `max_hole_px` filled.
+//! pose (the camera ray of each pixel meets the monitor plane), and rule 3 and the edge trim are
+//! not used.
 
 use anyhow::Result;
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, CV_32S};
@@ -23,7 +31,8 @@ use super::graycode::PixelDecode;
 #[derive(Clone, Copy, Debug)]
 pub struct MaskOptions {
     pub shift_px: f32,
-    pub white_drop: f32,
+    /// Rule 3's threshold; `None`: [`auto_white_drop`].
+    pub white_drop: Option<f32>,
     pub min_component_px: i32,
     pub max_hole_px: i32,
 }
@@ -32,7 +41,7 @@ impl Default for MaskOptions {
     fn default() -> Self {
         Self {
             shift_px: 2.0,
-            white_drop: 0.15,
+            white_drop: None,
             min_component_px: 50,
             max_hole_px: 50,
         }
@@ -48,38 +57,170 @@ pub struct BackgroundPixel {
     pub white: Option<u8>,
 }
 
-/// The raw silhouette (before clean-up): 255 for object pixels.
+/// A background white level below this (grey levels) gives no usable ratio.
+const MIN_BACKGROUND_WHITE: u8 = 20;
+
+/// What one pixel tells about the object, before thresholding the white ratio.
+#[derive(Clone, Copy, Debug)]
+struct Evidence {
+    /// Something decoded (a reliable bit on both axes, lit).
+    decoded: bool,
+    /// Rules 1 or 2: the decoded point moved, or the light was lost.
+    bent_or_lost: bool,
+    /// White intensity over the background's, where the background was captured bright enough.
+    ratio: Option<f32>,
+}
+
+fn evidence(
+    d: &PixelDecode,
+    lit: bool,
+    white: u8,
+    bg: &BackgroundPixel,
+    o: &MaskOptions,
+) -> Evidence {
+    let decoded = lit && d.u.bits > 0 && d.v.bits > 0;
+    let bent_or_lost = match (decoded, bg.point) {
+        (true, Some((bu, bv, cu, cv))) => {
+            (d.u.coord - bu).abs() > o.shift_px + (d.u.cell as f32 + cu) / 2.0
+                || (d.v.coord - bv).abs() > o.shift_px + (d.v.cell as f32 + cv) / 2.0
+        }
+        (false, Some(_)) => true,
+        (_, None) => false,
+    };
+    let ratio = bg
+        .white
+        .filter(|&bw| bw >= MIN_BACKGROUND_WHITE)
+        .map(|bw| white as f32 / bw as f32);
+    Evidence {
+        decoded,
+        bent_or_lost,
+        ratio,
+    }
+}
+
+/// Rule 3's default threshold: half the share of light two air–glass interfaces reflect at normal
+/// incidence for refractive index `ior` (Fresnel: R = ((n − 1)/(n + 1))², loss 1 − (1 − R)²;
+/// 7.1 % for n = 1.4723), or five times `noise` (the robust standard deviation of the white ratio
+/// on background pixels) if that is larger.
+pub fn auto_white_drop(ior: f64, noise: f32) -> f32 {
+    let r = ((ior - 1.0) / (ior + 1.0)).powi(2);
+    let loss = 1.0 - (1.0 - r) * (1.0 - r);
+    (0.5 * loss as f32).max(5.0 * noise)
+}
+
+/// Robust standard deviation (1.4826 × median absolute deviation) of the white ratio over the
+/// pixels rules 1 and 2 call background; 0 without a captured background.
+fn ratio_noise(ev: &[Evidence]) -> f32 {
+    let mut r: Vec<f32> = ev
+        .iter()
+        .filter(|e| e.decoded && !e.bent_or_lost)
+        .filter_map(|e| e.ratio)
+        .collect();
+    if r.len() < 100 {
+        return 0.0;
+    }
+    let mid = r.len() / 2;
+    let median = *r.select_nth_unstable_by(mid, f32::total_cmp).1;
+    let mut dev: Vec<f32> = r.iter().map(|x| (x - median).abs()).collect();
+    1.4826 * *dev.select_nth_unstable_by(mid, f32::total_cmp).1
+}
+
+/// The raw silhouette of a `width`-wide view (rules 1–3 and the edge trim, before clean-up): 255
+/// for object pixels. Returns the mask and the white-drop threshold used (`None` without a
+/// captured background). `ior`: the object's refractive index (for [`auto_white_drop`]).
 pub fn raw_mask(
     decoded: &[PixelDecode],
     lit: &[bool],
     white: &[u8],
     background: &[BackgroundPixel],
+    width: usize,
+    ior: f64,
     o: &MaskOptions,
-) -> Vec<u8> {
-    decoded
+) -> (Vec<u8>, Option<f32>) {
+    let ev: Vec<Evidence> = decoded
         .iter()
         .zip(lit)
         .zip(white)
         .zip(background)
-        .map(|(((d, &lit), &w), bg)| {
-            let valid = lit && d.u.bits > 0 && d.v.bits > 0;
-            let object = match (valid, bg.point) {
-                (true, Some((bu, bv, cu, cv))) => {
-                    (d.u.coord - bu).abs() > o.shift_px + (d.u.cell as f32 + cu) / 2.0
-                        || (d.v.coord - bv).abs() > o.shift_px + (d.v.cell as f32 + cv) / 2.0
-                }
-                (false, Some(_)) => true,
-                (_, None) => false,
-            } || bg
-                .white
-                .is_some_and(|bw| (w as f32) < (1.0 - o.white_drop) * bw as f32);
-            if object {
+        .map(|(((d, &lit), &w), bg)| evidence(d, lit, w, bg, o))
+        .collect();
+    let captured = background.iter().any(|b| b.white.is_some());
+    let drop = captured.then(|| {
+        o.white_drop
+            .unwrap_or_else(|| auto_white_drop(ior, ratio_noise(&ev)))
+    });
+    let mut mask: Vec<u8> = ev
+        .iter()
+        .map(|e| {
+            let darker = drop.is_some_and(|t| e.ratio.is_some_and(|r| r < 1.0 - t));
+            if e.bent_or_lost || darker {
                 255
             } else {
                 0
             }
         })
-        .collect()
+        .collect();
+    if captured {
+        trim_mixed_edge(&mut mask, &ev, width);
+    }
+    (mask, drop)
+}
+
+/// Rule 1: decoded, to a point away from the background's.
+fn clearly_bent(e: &Evidence) -> bool {
+    e.decoded && e.bent_or_lost
+}
+
+/// Passes of [`trim_mixed_edge`]: enough for a blur of about a pixel.
+const TRIM_PASSES: usize = 2;
+
+/// Removes edge pixels that are less than half object. An object pixel with a background
+/// 4-neighbour that is object only by rules 2 or 3 (it decodes to nothing, or to the background's
+/// point but darker) mixes the object's light and the background's; with coverage c its white
+/// ratio is about c·r_in + (1 − c), where r_in is the object's own (the smallest ratio among the
+/// object pixels within two pixels). Its centre lies outside the object (c < ½) when the ratio
+/// exceeds (1 + r_in)/2. Pixels whose decoded point moved (rule 1) are never trimmed.
+fn trim_mixed_edge(mask: &mut [u8], ev: &[Evidence], width: usize) {
+    let height = mask.len() / width;
+    for _ in 0..TRIM_PASSES {
+        let is_edge = |m: &[u8], i: usize| {
+            let (x, y) = (i % width, i / width);
+            (x > 0 && m[i - 1] == 0)
+                || (x + 1 < width && m[i + 1] == 0)
+                || (y > 0 && m[i - width] == 0)
+                || (y + 1 < height && m[i + width] == 0)
+        };
+        let inner_ratio = |m: &[u8], i: usize| {
+            let (x, y) = (i % width, i / width);
+            let mut lowest: Option<f32> = None;
+            for yy in y.saturating_sub(2)..(y + 3).min(height) {
+                for xx in x.saturating_sub(2)..(x + 3).min(width) {
+                    let j = yy * width + xx;
+                    if m[j] == 255 {
+                        if let Some(r) = ev[j].ratio {
+                            lowest = Some(lowest.map_or(r, |l: f32| l.min(r)));
+                        }
+                    }
+                }
+            }
+            lowest
+        };
+        let trim: Vec<usize> = (0..mask.len())
+            .filter(|&i| mask[i] == 255 && !clearly_bent(&ev[i]) && is_edge(mask, i))
+            .filter(|&i| {
+                let (Some(r), Some(r_in)) = (ev[i].ratio, inner_ratio(mask, i)) else {
+                    return false;
+                };
+                r > 0.5 * (1.0 + r_in)
+            })
+            .collect();
+        if trim.is_empty() {
+            break;
+        }
+        for i in trim {
+            mask[i] = 0;
+        }
+    }
 }
 
 /// Drops small object regions and fills holes that are small or thin (at most 2 pixels wide on

@@ -138,6 +138,9 @@ pub struct ViewSummary {
     pub decoded_share: f64,
     /// Share of those whose every bit is reliable.
     pub complete_share: f64,
+    /// Mask rule 3's threshold used (relative white drop), where a background was captured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub white_drop: Option<f64>,
     pub warning: Option<String>,
 }
 
@@ -157,6 +160,14 @@ pub fn decode_scan(
         .with_context(|| format!("cannot create {}", out.display()))?;
     let background = background_reference(scan, &code, phase, size, o)?;
     let fixed = FixedPoint::for_screen(code.width, code.height);
+    let writer = ViewWriter {
+        out: &out,
+        background: &background,
+        code: &code,
+        ior: scan.config.ior,
+        o,
+        fixed: &fixed,
+    };
     let mut summaries = Vec::new();
     for &k in views {
         let cap = decode_captures(&scan.view_dir(k), &code, phase, size, o)?;
@@ -166,9 +177,10 @@ pub fn decode_scan(
                 object_pixels: 0,
                 decoded_share: 0.0,
                 complete_share: 0.0,
+                white_drop: None,
                 warning: Some(why),
             },
-            None => write_view(&out, k, &cap, &background, &code, o, &fixed)?,
+            None => writer.write(k, &cap)?,
         };
         progress(&summary);
         summaries.push(summary);
@@ -234,79 +246,103 @@ fn background_reference(
         .collect())
 }
 
-fn write_view(
-    out: &Path,
-    k: usize,
-    cap: &DecodedCapture,
-    bg: &[BackgroundPixel],
-    code: &GrayCode,
-    o: &DecodeOptions,
-    fixed: &FixedPoint,
-) -> Result<ViewSummary> {
-    let (w, h) = (cap.width as i32, cap.height as i32);
-    let mut mask = raw_mask(&cap.pixels, &cap.lit, &cap.white, bg, &o.mask);
-    clean(&mut mask, w, h, &o.mask)?;
-    let mut monitor = Vec::with_capacity(mask.len());
-    let mut preview = Vec::with_capacity(mask.len());
-    let (mut object, mut decoded, mut complete) = (0usize, 0usize, 0usize);
-    for ((d, (&m, &lit)), &white) in cap
-        .pixels
-        .iter()
-        .zip(mask.iter().zip(&cap.lit))
-        .zip(&cap.white)
-    {
-        let valid = lit && d.u.bits > 0 && d.v.bits > 0;
-        monitor.push(if valid {
-            Vec4w::from([
-                fixed.encode(d.u.coord as f64),
-                fixed.encode(d.v.coord as f64),
-                d.u.cell.min(65534) as u16,
-                d.v.cell.min(65534) as u16,
-            ])
-        } else {
-            Vec4w::from([NONE; 4])
-        });
-        if m == 255 {
-            object += 1;
-            decoded += valid as usize;
-            complete += (valid && d.complete(code)) as usize;
-            // Object pixels: decoded coordinates as colours (blue: row, green: column), red if
-            // nothing decoded.
-            preview.push(if valid {
-                Vec3b::from([
-                    (255.0 * d.v.coord / code.height as f32) as u8,
-                    (255.0 * d.u.coord / code.width as f32) as u8,
-                    40,
+/// What every view's outputs depend on besides its captures.
+struct ViewWriter<'a> {
+    /// The `decoded/` folder.
+    out: &'a Path,
+    background: &'a [BackgroundPixel],
+    code: &'a GrayCode,
+    /// The object's refractive index (for the mask's white-drop rule).
+    ior: f64,
+    o: &'a DecodeOptions,
+    fixed: &'a FixedPoint,
+}
+
+impl ViewWriter<'_> {
+    /// Masks view `k` and writes its decoded form and preview.
+    fn write(&self, k: usize, cap: &DecodedCapture) -> Result<ViewSummary> {
+        let ViewWriter {
+            out,
+            background: bg,
+            code,
+            ior,
+            o,
+            fixed,
+        } = *self;
+        let (w, h) = (cap.width as i32, cap.height as i32);
+        let (mut mask, white_drop) = raw_mask(
+            &cap.pixels,
+            &cap.lit,
+            &cap.white,
+            bg,
+            cap.width,
+            ior,
+            &o.mask,
+        );
+        clean(&mut mask, w, h, &o.mask)?;
+        let mut monitor = Vec::with_capacity(mask.len());
+        let mut preview = Vec::with_capacity(mask.len());
+        let (mut object, mut decoded, mut complete) = (0usize, 0usize, 0usize);
+        for ((d, (&m, &lit)), &white) in cap
+            .pixels
+            .iter()
+            .zip(mask.iter().zip(&cap.lit))
+            .zip(&cap.white)
+        {
+            let valid = lit && d.u.bits > 0 && d.v.bits > 0;
+            monitor.push(if valid {
+                Vec4w::from([
+                    fixed.encode(d.u.coord as f64),
+                    fixed.encode(d.v.coord as f64),
+                    d.u.cell.min(65534) as u16,
+                    d.v.cell.min(65534) as u16,
                 ])
             } else {
-                Vec3b::from([0, 0, 255])
+                Vec4w::from([NONE; 4])
             });
-        } else {
-            let g = white / 2;
-            preview.push(Vec3b::from([g, g, g]));
+            if m == 255 {
+                object += 1;
+                decoded += valid as usize;
+                complete += (valid && d.complete(code)) as usize;
+                // Object pixels: decoded coordinates as colours (blue: row, green: column), red if
+                // nothing decoded.
+                preview.push(if valid {
+                    Vec3b::from([
+                        (255.0 * d.v.coord / code.height as f32) as u8,
+                        (255.0 * d.u.coord / code.width as f32) as u8,
+                        40,
+                    ])
+                } else {
+                    Vec3b::from([0, 0, 255])
+                });
+            } else {
+                let g = white / 2;
+                preview.push(Vec3b::from([g, g, g]));
+            }
         }
+        form::write_view(
+            out,
+            k,
+            (cap.width as u32, cap.height as u32),
+            &mask,
+            &monitor,
+        )?;
+        write_pixels(
+            &out.join("preview").join(format!("view_{k:03}.png")),
+            cap.width as u32,
+            cap.height as u32,
+            &preview,
+        )?;
+        let warning = (object == 0).then(|| {
+            "no object pixel found: is the object in view, and the background right?".to_string()
+        });
+        Ok(ViewSummary {
+            view: k,
+            object_pixels: object,
+            decoded_share: decoded as f64 / object.max(1) as f64,
+            complete_share: complete as f64 / decoded.max(1) as f64,
+            white_drop: white_drop.map(f64::from),
+            warning,
+        })
     }
-    form::write_view(
-        out,
-        k,
-        (cap.width as u32, cap.height as u32),
-        &mask,
-        &monitor,
-    )?;
-    write_pixels(
-        &out.join("preview").join(format!("view_{k:03}.png")),
-        cap.width as u32,
-        cap.height as u32,
-        &preview,
-    )?;
-    let warning = (object == 0).then(|| {
-        "no object pixel found: is the object in view, and the background right?".to_string()
-    });
-    Ok(ViewSummary {
-        view: k,
-        object_pixels: object,
-        decoded_share: decoded as f64 / object.max(1) as f64,
-        complete_share: complete as f64 / decoded.max(1) as f64,
-        warning,
-    })
 }

@@ -9,6 +9,8 @@
 //! - DRT's figure: mean distance from the result's vertices to the reference surface (mm),
 //! - Hausdorff: the largest distance seen in either direction, vertices included (mm).
 
+pub mod error_map;
+
 use std::collections::BTreeMap;
 
 use nalgebra::Point3;

@@ -295,6 +295,7 @@ pub fn import_drt(
             object_pixels: objects,
             decoded_share: rays.len() as f64 / objects.max(1) as f64,
             complete_share: 1.0,
+            white_drop: None,
             warning: None,
         });
         poses.push(pose);

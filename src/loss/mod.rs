@@ -101,6 +101,9 @@ impl Drops {
 pub struct Contributions {
     pub loss: f64,
     pub used: usize,
+    /// Sum of the weights of the terms used (a pixel's from its decoding uncertainty; a contour
+    /// edge or an edge pair weighs 1): a term's mean is `loss / weight`.
+    pub weight: f64,
     pub drops: Drops,
     /// (vertex, ∂L/∂position) entries.
     pub grad: Vec<(u32, V3)>,
@@ -109,9 +112,11 @@ pub struct Contributions {
 }
 
 impl Contributions {
-    pub fn push_pixel(&mut self, g: &PixelGradient) {
+    /// Adds a pixel of weight `weight` (its loss and gradient already carry it).
+    pub fn push_pixel(&mut self, g: &PixelGradient, weight: f64) {
         self.loss += g.loss;
         self.used += 1;
+        self.weight += weight;
         self.grad.extend_from_slice(&g.grad);
         self.ngrad.extend_from_slice(&g.ngrad);
     }
@@ -123,6 +128,8 @@ impl Contributions {
 pub struct Accumulator {
     pub loss: f64,
     pub used: usize,
+    /// See [`Contributions::weight`].
+    pub weight: f64,
     pub drops: Drops,
     pub grad: Vec<V3>,
     pub normal_grad: Vec<V3>,
@@ -133,6 +140,7 @@ impl Accumulator {
         Self {
             loss: 0.0,
             used: 0,
+            weight: 0.0,
             drops: Drops::default(),
             grad: vec![V3::zeros(); vertices],
             normal_grad: if vertex_normals {
@@ -150,6 +158,7 @@ impl Accumulator {
         for c in chunks {
             self.loss += c.loss;
             self.used += c.used;
+            self.weight += c.weight;
             self.drops.add(&c.drops);
         }
         // One part per thread: each part reads every entry, so more parts only add reading.

@@ -329,7 +329,7 @@ pub fn add_view(
                 match classify(&path.end, path.refractions, s.max_refractions)
                     .and_then(|()| pixel_gradient_into(&mesh, s, view, px, trail.prims(), &mut g))
                 {
-                    Ok(()) => c.push_pixel(&g),
+                    Ok(()) => c.push_pixel(&g, px.weight),
                     Err(r) => c.drops.count(r),
                 }
             }

@@ -166,6 +166,7 @@ pub fn add_view(
                     Some((loss, g)) => {
                         c.loss += loss;
                         c.used += 1;
+                        c.weight += 1.0;
                         c.grad.extend([(e.verts[0], g[0]), (e.verts[1], g[1])]);
                     }
                     None => c.drops.non_finite += 1,

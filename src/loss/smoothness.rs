@@ -56,6 +56,7 @@ pub fn add_smoothness(
                     Ok((loss, grads)) => {
                         c.loss += loss;
                         c.used += 1;
+                        c.weight += 1.0;
                         c.grad.extend_from_slice(&grads);
                     }
                     Err(r) => c.drops.count(r),

@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 use crate::loss::refraction::ResidualForm;
 use crate::loss::silhouette::SilhouetteForm;
 use crate::loss::smoothness::Smoothness;
+use crate::loss::targets::TargetWeights;
 use crate::loss::Robust;
 use crate::trace::path::NormalModel;
 
@@ -47,7 +48,7 @@ pub struct Settings {
     pub iterations: usize,
     pub remesh_iterations: usize,
     pub optimizer: Optimizer,
-    /// Term weights (each term is a mean over its rays or edges).
+    /// Term weights (each term is a weighted mean over its rays or edges).
     pub weight_refraction: f64,
     pub weight_silhouette: f64,
     pub weight_smoothness: f64,
@@ -62,6 +63,16 @@ pub struct Settings {
     pub max_refractions: u32,
     pub silhouette: SilhouetteForm,
     pub smoothness: Smoothness,
+    /// Weights of the decoded monitor points (absent in reports written before it existed).
+    #[serde(default)]
+    pub target_weights: TargetWeights,
+    /// Warm-up stages run before `stages`: the first `warmup_stages` stages of the `drt` preset
+    /// (its optimiser, learning rates, terms, weights and iterations; seed and target weights
+    /// from here), all at this schedule's `start_edge`. DRT's clamped SGD carves what the visual
+    /// hull filled in (a concavity no silhouette shows) within a few stages, where Large Steps
+    /// from the hull does not; Large Steps then refines without SGD's plateau.
+    #[serde(default)]
+    pub warmup_stages: usize,
 }
 
 impl Settings {
@@ -94,6 +105,8 @@ impl Settings {
             max_refractions: 2,
             silhouette: SilhouetteForm::Distance,
             smoothness: Smoothness::LogTwoMinusCos,
+            target_weights: TargetWeights::Uniform,
+            warmup_stages: 3,
         };
         Some(match name {
             "fast" => base,
@@ -139,6 +152,7 @@ impl Settings {
                 robust: Robust::L2,
                 silhouette: SilhouetteForm::Drt,
                 smoothness: Smoothness::NegLogOnePlusCos,
+                warmup_stages: 0,
                 ..base
             },
             _ => return None,
@@ -171,6 +185,13 @@ impl Settings {
         if self.stages == 0 || self.iterations == 0 {
             return bad("stages/iterations", "must be at least 1");
         }
+        let drt_stages = Settings::preset("drt").expect("built-in").stages;
+        if self.warmup_stages > drt_stages {
+            return bad(
+                "warmup_stages",
+                &format!("DRT's schedule has {drt_stages} stages"),
+            );
+        }
         if !(self.start_edge > 0.0 && self.final_edge > 0.0 && self.final_edge <= self.start_edge) {
             return bad("start_edge/final_edge", "need 0 < final_edge ≤ start_edge");
         }
@@ -193,7 +214,30 @@ impl Settings {
         Ok(())
     }
 
-    /// Target edge length of stage `s` (mm) for an initial bounding-box diagonal `diag`.
+    /// Stages in all, the warm-up included.
+    pub fn total_stages(&self) -> usize {
+        self.warmup_stages + self.stages
+    }
+
+    /// The settings that drive stage `g` (0-based over [`Self::total_stages`], warm-up first)
+    /// and the stage's index in their own schedule.
+    pub fn stage(&self, g: usize) -> (Settings, usize) {
+        if g < self.warmup_stages {
+            let drt = Settings {
+                seed: self.seed,
+                target_weights: self.target_weights,
+                start_edge: self.start_edge,
+                final_edge: self.start_edge,
+                ..Settings::preset("drt").expect("built-in")
+            };
+            (drt, g)
+        } else {
+            (self.clone(), g - self.warmup_stages)
+        }
+    }
+
+    /// Target edge length of stage `s` of this schedule (mm) for an initial bounding-box
+    /// diagonal `diag`.
     pub fn edge_mm(&self, s: usize, diag: f64) -> f64 {
         let t = if self.stages > 1 {
             s as f64 / (self.stages - 1) as f64
@@ -202,5 +246,29 @@ impl Settings {
         };
         let inv = (1.0 - t) / self.start_edge + t / self.final_edge;
         diag / inv
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decode::form::MonitorTarget;
+
+    #[test]
+    fn target_weights_are_a_setting() {
+        let s = Settings::preset("fast").unwrap();
+        assert_eq!(s.target_weights, TargetWeights::Uniform);
+        let s = s.with_overrides("target_weights = \"cell\"\n").unwrap();
+        assert_eq!(s.target_weights, TargetWeights::Cell);
+        let cell = |c: f64| MonitorTarget {
+            u: 10.0,
+            v: 20.0,
+            cell_u: c,
+            cell_v: c,
+        };
+        assert_eq!(TargetWeights::Cell.weight(&cell(1.0)), 1.0);
+        assert_eq!(TargetWeights::Cell.weight(&cell(4.0)), 1.0 / 16.0);
+        assert_eq!(TargetWeights::Uniform.weight(&cell(4.0)), 1.0);
+        assert!(s.with_overrides("target_weights = \"area\"\n").is_err());
     }
 }

@@ -156,27 +156,23 @@ pub fn run(
             init.clone(),
         )
     };
-    while ck.stages_done < settings.stages {
+    let stages = settings.total_stages();
+    while ck.stages_done < stages {
         let s = ck.stages_done;
         let t0 = Instant::now();
-        let edge_mm = settings.edge_mm(s, ck.diagonal_mm);
+        let (phase, k) = settings.stage(s);
+        let edge_mm = phase.edge_mm(k, ck.diagonal_mm);
         let opts = RemeshOptions {
-            iterations: settings.remesh_iterations,
+            iterations: phase.remesh_iterations,
             ..RemeshOptions::uniform(edge_mm)
         };
         mesh = remesh(&mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
-        progress.stage_start(
-            s,
-            settings.stages,
-            edge_mm,
-            mesh.faces.len(),
-            settings.iterations,
-        );
+        progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
         let report = run_stage(
             inputs,
             &mut mesh,
-            settings,
-            s,
+            &phase,
+            (s, k),
             edge_mm,
             &mut ck.history,
             progress,
@@ -194,26 +190,27 @@ pub fn run(
             Ok(())
         })
         .with_context(|| format!("cannot write {}", checkpoint_path(out).display()))?;
-        if stop.load(Ordering::SeqCst) && ck.stages_done < settings.stages {
+        if stop.load(Ordering::SeqCst) && ck.stages_done < stages {
             bail!("stopped after stage {s} (checkpoint saved): continue with --resume",);
         }
     }
     Ok((ck, mesh))
 }
 
-/// The iterations of stage `s` on `mesh` (moved in place).
+/// The iterations of stage `s` of the run, stage `k` of `settings`' schedule, on `mesh` (moved in
+/// place).
 fn run_stage(
     inputs: &Inputs,
     mesh: &mut TriMesh,
     settings: &Settings,
-    s: usize,
+    (s, k): (usize, usize),
     edge_mm: f64,
     history: &mut Vec<IterationRecord>,
     progress: &dyn Progress,
 ) -> Result<StageReport> {
     let mut surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Refit)?;
     let edges = mesh.interior_edges();
-    let mut stepper = Stepper::new(&settings.optimizer, mesh, s, settings.stages, edge_mm)?;
+    let mut stepper = Stepper::new(&settings.optimizer, mesh, k, settings.stages, edge_mm)?;
     let rs = RefractionSettings {
         ior: inputs.ior,
         ior_air: IOR_AIR,
@@ -246,7 +243,7 @@ fn run_stage(
             };
             add_view(&surface, mesh, vn, &rs, &sub, &mut acc)?;
         }
-        let (r_used, r_loss, r_drops) = (acc.used, acc.loss, acc.drops);
+        let (r_used, r_weight, r_loss, r_drops) = (acc.used, acc.weight, acc.loss, acc.drops);
         let g_r = acc.finish(mesh);
         used += r_used;
         drops.add(&r_drops);
@@ -269,18 +266,19 @@ fn run_stage(
         // Smoothness.
         let mut acc_m = Accumulator::new(nv, false);
         add_smoothness(mesh, &edges, settings.smoothness, &mut acc_m);
-        let mean = |loss: f64, n: usize| if n > 0 { loss / n as f64 } else { 0.0 };
+        // Each term is a weighted mean over what it used.
+        let per_weight = |w: f64| if w > 0.0 { 1.0 / w } else { 0.0 };
         let (wr, ws, wm) = (
-            settings.weight_refraction / r_used.max(1) as f64,
-            settings.weight_silhouette / acc_s.used.max(1) as f64,
-            settings.weight_smoothness / acc_m.used.max(1) as f64,
+            settings.weight_refraction * per_weight(r_weight),
+            settings.weight_silhouette * per_weight(acc_s.weight),
+            settings.weight_smoothness * per_weight(acc_m.weight),
         );
         last = IterationRecord {
             stage: s,
             iteration: it,
-            refraction: settings.weight_refraction * mean(r_loss, r_used),
-            silhouette: settings.weight_silhouette * mean(acc_s.loss, acc_s.used),
-            smoothness: settings.weight_smoothness * mean(acc_m.loss, acc_m.used),
+            refraction: wr * r_loss,
+            silhouette: ws * acc_s.loss,
+            smoothness: wm * acc_m.loss,
             total: 0.0,
         };
         last.total = last.refraction + last.silhouette + last.smoothness;
@@ -334,10 +332,14 @@ fn run_stage(
     })
 }
 
-/// Loads the decoded targets and silhouettes of `views`.
-pub fn load_inputs(scan: &crate::scan::Scan, views: &[usize]) -> Result<(Inputs, Vec<String>)> {
+/// Loads the decoded targets (weighted by `weights`) and silhouettes of `views`.
+pub fn load_inputs(
+    scan: &crate::scan::Scan,
+    views: &[usize],
+    weights: crate::loss::targets::TargetWeights,
+) -> Result<(Inputs, Vec<String>)> {
     let (silhouettes, mut warnings) = crate::hull::silhouettes(scan, views)?;
-    let (targets, skipped) = crate::loss::targets::scan_targets(scan, views)?;
+    let (targets, skipped) = crate::loss::targets::scan_targets(scan, views, weights)?;
     if targets.is_empty() {
         bail!("no decoded view to reconstruct from");
     }

@@ -5,16 +5,17 @@ use std::path::Path;
 
 use anyhow::Result;
 use opencv::core::{Mat, Point, Scalar, CV_8UC3};
-use opencv::imgproc::{circle, line, put_text, FILLED, FONT_HERSHEY_SIMPLEX, LINE_AA};
+use opencv::imgproc::{circle, line, FILLED, LINE_AA};
 
 use super::IterationRecord;
-use crate::util::image::write_png;
+use crate::util::image::{label, write_png};
 
 /// A plotted term: name, value, colour (BGR).
 type Term = (&'static str, fn(&IterationRecord) -> f64, Scalar);
 
-/// Draws the weighted term means of `history` (one point per iteration) into a PNG.
-pub fn loss_plot(path: &Path, history: &[IterationRecord]) -> Result<()> {
+/// Draws the weighted term means of `history` (one point per iteration) into a PNG; the first
+/// `warmup_stages` stages (DRT's weights, so on another scale) are labelled as such.
+pub fn loss_plot(path: &Path, history: &[IterationRecord], warmup_stages: usize) -> Result<()> {
     let (w, h, margin) = (900, 520, 60);
     let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC3, Scalar::all(255.0))?;
     let terms: [Term; 4] = [
@@ -72,7 +73,7 @@ pub fn loss_plot(path: &Path, history: &[IterationRecord]) -> Result<()> {
     let mut decade = lo;
     while decade <= hi {
         let yy = y(10f64.powf(decade));
-        text(
+        label(
             &mut img,
             &format!("1e{decade}"),
             Point::new(5, yy + 4),
@@ -96,7 +97,7 @@ pub fn loss_plot(path: &Path, history: &[IterationRecord]) -> Result<()> {
                 )?;
             }
         }
-        text(
+        label(
             &mut img,
             name,
             Point::new(margin + 130 * k as i32, margin - 20),
@@ -104,7 +105,30 @@ pub fn loss_plot(path: &Path, history: &[IterationRecord]) -> Result<()> {
             *colour,
         )?;
     }
-    text(
+    if warmup_stages > 0 {
+        let end = history
+            .iter()
+            .position(|r| r.stage >= warmup_stages)
+            .unwrap_or(history.len());
+        let dark = Scalar::all(90.0);
+        label(
+            &mut img,
+            "warm-up (DRT's weights)",
+            Point::new(x(0) + 6, margin + 16),
+            0.45,
+            dark,
+        )?;
+        if end < history.len() {
+            label(
+                &mut img,
+                "refinement",
+                Point::new(x(end) + 6, margin + 16),
+                0.45,
+                dark,
+            )?;
+        }
+    }
+    label(
         &mut img,
         "iteration (grey: new stage)",
         Point::new(w / 2 - 100, h - 20),
@@ -134,21 +158,6 @@ fn axes(img: &mut Mat, w: i32, h: i32, margin: i32) -> Result<()> {
         1,
         LINE_AA,
         0,
-    )?;
-    Ok(())
-}
-
-fn text(img: &mut Mat, s: &str, at: Point, scale: f64, colour: Scalar) -> Result<()> {
-    put_text(
-        img,
-        s,
-        at,
-        FONT_HERSHEY_SIMPLEX,
-        scale,
-        colour,
-        1,
-        LINE_AA,
-        false,
     )?;
     Ok(())
 }
@@ -194,7 +203,7 @@ pub fn time_accuracy_plot(path: &Path, series: &[(String, Vec<(f64, f64)>)]) -> 
     let mut decade = lo;
     while decade <= hi {
         let t = 10f64.powf(decade);
-        text(
+        label(
             &mut img,
             &format!("{t} s"),
             Point::new(x(t) - 15, h - margin + 18),
@@ -205,7 +214,7 @@ pub fn time_accuracy_plot(path: &Path, series: &[(String, Vec<(f64, f64)>)]) -> 
     }
     for k in 0..=5 {
         let a = a_hi * k as f64 / 5.0;
-        text(
+        label(
             &mut img,
             &format!("{a:.2}"),
             Point::new(10, y(a) + 4),
@@ -250,7 +259,7 @@ pub fn time_accuracy_plot(path: &Path, series: &[(String, Vec<(f64, f64)>)]) -> 
                 .filter(|w| *w != preset)
                 .collect::<Vec<_>>()
                 .join(" ");
-            text(
+            label(
                 &mut img,
                 &short,
                 Point::new(x(end.0) + 6, y(end.1) - 4),
@@ -260,7 +269,7 @@ pub fn time_accuracy_plot(path: &Path, series: &[(String, Vec<(f64, f64)>)]) -> 
         }
     }
     for (k, (p, c)) in PRESET_COLOURS.iter().enumerate() {
-        text(
+        label(
             &mut img,
             p,
             Point::new(margin + 120 * k as i32, margin - 25),
@@ -268,7 +277,7 @@ pub fn time_accuracy_plot(path: &Path, series: &[(String, Vec<(f64, f64)>)]) -> 
             Scalar::new(c[0], c[1], c[2], 0.0),
         )?;
     }
-    text(
+    label(
         &mut img,
         "accuracy (mm) against wall time (hull + stages; a point per stage)",
         Point::new(w / 2 - 260, h - 20),

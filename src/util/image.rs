@@ -3,7 +3,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use opencv::core::Vector;
+use opencv::core::{Mat, Point, Scalar, Vector};
+use opencv::imgproc::{put_text, FONT_HERSHEY_SIMPLEX, LINE_AA};
 
 /// Writes an image (8- or 16-bit PNG, fast compression) atomically: OpenCV writes a temporary
 /// file beside `path`, which is then renamed.
@@ -28,4 +29,21 @@ pub fn write_pixels<T: opencv::core::DataType>(
 ) -> Result<()> {
     let mat = opencv::core::Mat::new_rows_cols_with_data(height as i32, width as i32, data)?;
     write_png(path, &mat)
+}
+
+/// Draws `s` on a plot with its baseline starting at `at` (OpenCV's simplex font, `scale` × its
+/// size, antialiased), in BGR `colour`.
+pub fn label(img: &mut Mat, s: &str, at: Point, scale: f64, colour: Scalar) -> Result<()> {
+    put_text(
+        img,
+        s,
+        at,
+        FONT_HERSHEY_SIMPLEX,
+        scale,
+        colour,
+        1,
+        LINE_AA,
+        false,
+    )?;
+    Ok(())
 }

@@ -1,0 +1,158 @@
+//! The error map: a PNG of the result mesh seen from six sides (orthographic: four around the
+//! turntable's +y axis, then from above and below), every visible point coloured by its distance
+//! to the reference surface (mm; blue 0 → green → yellow → red at `max_mm` and beyond) and shaded
+//! by how squarely it faces the viewer; a colour bar below.
+
+use std::path::Path;
+
+use anyhow::Result;
+use nalgebra::{Point3, Vector3};
+use opencv::core::{Mat, MatTrait, Point, Rect, Scalar, Vec3b, CV_8UC3};
+use opencv::imgproc::{rectangle, LINE_8};
+
+use crate::mesh::TriMesh;
+use crate::trace::{Ray, Scene};
+use crate::util::image::{label, write_png};
+
+/// Side of one panel, pixels.
+const PANEL: i32 = 420;
+/// Height of the colour-bar strip, pixels.
+const BAR: i32 = 70;
+
+/// The six viewing directions (unit, world frame) with each panel's up vector and title.
+fn views() -> [(Vector3<f64>, Vector3<f64>, &'static str); 6] {
+    let (x, y, z) = (Vector3::x(), Vector3::y(), Vector3::z());
+    [
+        (-z, y, "front (-z)"),
+        (-x, y, "side (-x)"),
+        (z, y, "back (+z)"),
+        (x, y, "side (+x)"),
+        (-y, -z, "top (-y)"),
+        (y, z, "bottom (+y)"),
+    ]
+}
+
+/// Blue → cyan → green → yellow → red for `s` in [0, 1] (BGR).
+fn colour(s: f64) -> [f64; 3] {
+    const STOPS: [[f64; 3]; 5] = [
+        [255.0, 40.0, 20.0],
+        [230.0, 200.0, 0.0],
+        [40.0, 200.0, 40.0],
+        [0.0, 220.0, 240.0],
+        [20.0, 20.0, 230.0],
+    ];
+    let t = s.clamp(0.0, 1.0) * (STOPS.len() - 1) as f64;
+    let i = (t.floor() as usize).min(STOPS.len() - 2);
+    let f = t - i as f64;
+    std::array::from_fn(|c| STOPS[i][c] * (1.0 - f) + STOPS[i + 1][c] * f)
+}
+
+/// Renders `result` coloured by the distance of each visible point to the surface in `reference`
+/// and writes the PNG to `path` (atomically). `max_mm`: the distance shown red.
+pub fn write_error_map(
+    path: &Path,
+    result: &TriMesh,
+    result_scene: &Scene,
+    reference: &Scene,
+    max_mm: f64,
+) -> Result<()> {
+    let Some((lo, hi)) = result.bbox() else {
+        anyhow::bail!("the mesh has no vertices: no error map");
+    };
+    let centre = nalgebra::center(&lo, &hi);
+    let radius = 0.5 * (hi - lo).norm();
+    let scale = 2.0 * radius * 1.05 / PANEL as f64; // mm per pixel
+    let (cols, rows) = (3, 2);
+    let mut img = Mat::new_rows_cols_with_default(
+        rows * PANEL + BAR,
+        cols * PANEL,
+        CV_8UC3,
+        Scalar::all(255.0),
+    )?;
+    for (k, (dir, up, title)) in views().into_iter().enumerate() {
+        let right = dir.cross(&up);
+        let rays: Vec<Ray> = (0..PANEL * PANEL)
+            .map(|p| {
+                let (px, py) = ((p % PANEL) as f64 + 0.5, (p / PANEL) as f64 + 0.5);
+                let offset = right * ((px - 0.5 * PANEL as f64) * scale)
+                    - up * ((py - 0.5 * PANEL as f64) * scale);
+                Ray::new(centre + offset - dir * (2.0 * radius), dir)
+            })
+            .collect();
+        let hits = result_scene.intersect(&rays, true)?;
+        let seen: Vec<(usize, u32, Point3<f64>)> = rays
+            .iter()
+            .zip(&hits)
+            .enumerate()
+            .filter_map(|(p, (r, h))| h.map(|h| (p, h.prim, r.origin + r.dir * h.t)))
+            .collect();
+        let points: Vec<Point3<f64>> = seen.iter().map(|s| s.2).collect();
+        let dist = reference.closest_points(&points)?;
+        let (x0, y0) = ((k as i32 % cols) * PANEL, (k as i32 / cols) * PANEL);
+        for (&(p, prim, _), d) in seen.iter().zip(&dist) {
+            let d = d.dist;
+            let n = result.face_cross(prim as usize);
+            let facing = n.dot(&dir).abs() / n.norm().max(f64::MIN_POSITIVE);
+            let shade = 0.35 + 0.65 * facing;
+            let c = colour(d / max_mm).map(|v| (v * shade) as u8);
+            *img.at_2d_mut::<Vec3b>(y0 + p as i32 / PANEL, x0 + p as i32 % PANEL)? = Vec3b::from(c);
+        }
+        label(
+            &mut img,
+            title,
+            Point::new(x0 + 10, y0 + 22),
+            0.6,
+            Scalar::all(0.0),
+        )?;
+    }
+    // Colour bar.
+    let (bx, by, bw, bh) = (60, rows * PANEL + 12, cols * PANEL - 120, 20);
+    for i in 0..bw {
+        let c = colour(i as f64 / (bw - 1) as f64);
+        rectangle(
+            &mut img,
+            Rect::new(bx + i, by, 1, bh),
+            Scalar::new(c[0], c[1], c[2], 0.0),
+            -1,
+            LINE_8,
+            0,
+        )?;
+    }
+    for (f, text) in [
+        (0.0, "0 mm".to_string()),
+        (0.5, format!("{:.3} mm", 0.5 * max_mm)),
+        (1.0, format!(">= {max_mm:.3} mm")),
+    ] {
+        let x = bx + (f * bw as f64) as i32 - 20;
+        label(
+            &mut img,
+            &text,
+            Point::new(x.min(cols * PANEL - 130), by + bh + 22),
+            0.5,
+            Scalar::all(0.0),
+        )?;
+    }
+    label(
+        &mut img,
+        "distance to the reference",
+        Point::new(bx, by - 2),
+        0.45,
+        Scalar::all(0.0),
+    )?;
+    write_png(path, &img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::colour;
+
+    #[test]
+    fn the_colour_scale_runs_blue_to_red_and_clamps() {
+        assert_eq!(colour(0.0), [255.0, 40.0, 20.0]);
+        assert_eq!(colour(1.0), [20.0, 20.0, 230.0]);
+        assert_eq!(colour(7.0), colour(1.0));
+        assert_eq!(colour(-1.0), colour(0.0));
+        let mid = colour(0.5);
+        assert!(mid[1] > mid[0] && mid[1] > mid[2], "{mid:?}");
+    }
+}
