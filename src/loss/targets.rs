@@ -16,8 +16,8 @@ use crate::scan::Scan;
 pub enum TargetWeights {
     /// Every decoded point weighs 1. The default: on captures through glass most points come
     /// from partly decoded cells (blurred, noisy footprints), and weighting by the cell puts the
-    /// whole term on the few complete decodes (on a noisy pig scan 0.75 % of the points carried
-    /// a third of the weight, and the reconstruction was 2–3× less accurate).
+    /// term on the few complete decodes (noisy 72-view pig scan, `balanced` without warm-up:
+    /// 0.83 mm with cell weights, 0.28–0.44 mm with uniform ones over three seeds).
     #[default]
     Uniform,
     /// The inverse of the point's variance: a uniform spread over its cell
