@@ -6,7 +6,7 @@
 DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev libhdf5-dev clang libclang-dev cmake pkg-config
 CARGO ?= cargo
 
-.PHONY: deps demo test bench bench-remesh bench-simulate clean
+.PHONY: deps demo test test-embree4 lint fuzz bench bench-remesh bench-simulate clean
 
 # Installs missing Debian packages when run as root; otherwise prints the exact command and stops.
 deps:
@@ -33,6 +33,30 @@ demo: deps
 test: DEBIAN_PACKAGES += opencv-doc
 test: deps
 	$(CARGO) test --release
+
+# The whole test suite again against Embree 4.4.0 (Debian 12 ships only Embree 3): headers from
+# the folder EMBREE4 (with include/embree4/ and get-lib.sh, which fetches the matching library
+# from PyPI with pip into target/embree4-lib). Leaves the build linked against Embree 4; the next
+# `make test` relinks against the system's Embree.
+EMBREE4 ?= ../shared/embree4
+EMBREE4_LIB := $(CURDIR)/target/embree4-lib
+test-embree4: deps
+	@[ -f "$(EMBREE4)/get-lib.sh" ] && [ -f "$(EMBREE4)/include/embree4/rtcore.h" ] || \
+	  { echo "glasscan: $(EMBREE4) has no Embree 4 headers and get-lib.sh: set EMBREE4=folder"; exit 1; }
+	bash "$(EMBREE4)/get-lib.sh" "$(EMBREE4_LIB)"
+	EMBREE4_INCLUDE_DIR="$(abspath $(EMBREE4))/include" EMBREE4_LIB_DIR="$(EMBREE4_LIB)" \
+	  $(CARGO) run --release -- --version | grep -F "Embree 4."
+	EMBREE4_INCLUDE_DIR="$(abspath $(EMBREE4))/include" EMBREE4_LIB_DIR="$(EMBREE4_LIB)" \
+	  $(CARGO) test --release
+
+# The readers' fuzz tests at 100,000 cases each (`make test` runs 64).
+fuzz: deps
+	GLASSCAN_FUZZ_CASES=100000 $(CARGO) test --release --test fuzz_readers -- --nocapture
+
+# Formatting and lint checks (CI runs them beside the tests).
+lint:
+	$(CARGO) fmt --check
+	$(CARGO) clippy --release --all-targets -- -D warnings
 
 # Embree throughput on a mesh: make bench MESH=../shared/meshes/pig_scan.ply
 MESH ?= ../shared/meshes/pig_scan.ply

@@ -12,6 +12,68 @@ fn fail(msg: &str) -> ! {
     std::process::exit(1);
 }
 
+/// An Embree found without CMake: its header folder (holding `embree4/` or `embree3/`), its
+/// shared library and major version.
+struct ExplicitEmbree {
+    include: PathBuf,
+    library: PathBuf,
+    major: u32,
+}
+
+/// The environment variables that point the build at an Embree.
+const EMBREE_VARS: [&str; 5] = [
+    "EMBREE4_INCLUDE_DIR",
+    "EMBREE4_LIB_DIR",
+    "EMBREE_DIR",
+    "embree_DIR",
+    "CMAKE_PREFIX_PATH",
+];
+
+/// The Embree named by `EMBREE4_INCLUDE_DIR` + `EMBREE4_LIB_DIR` (e.g. a release archive or a
+/// library from a Python wheel), or by `EMBREE_DIR` holding `include/` and `lib/` (or `lib64/`)
+/// without a CMake package config. `None`: let CMake search for a package config.
+fn explicit_embree() -> Option<ExplicitEmbree> {
+    let var = |k: &str| std::env::var_os(k).map(PathBuf::from);
+    if let (Some(include), Some(lib)) = (var("EMBREE4_INCLUDE_DIR"), var("EMBREE4_LIB_DIR")) {
+        if !include.join("embree4/rtcore.h").is_file() {
+            fail(&format!(
+                "glasscan: EMBREE4_INCLUDE_DIR={} has no embree4/rtcore.h",
+                include.display()
+            ));
+        }
+        let library = lib.join("libembree4.so");
+        if !library.exists() {
+            fail(&format!(
+                "glasscan: EMBREE4_LIB_DIR={} has no libembree4.so",
+                lib.display()
+            ));
+        }
+        return Some(ExplicitEmbree {
+            include,
+            library,
+            major: 4,
+        });
+    }
+    let root = var("EMBREE_DIR")?;
+    for major in [4, 3] {
+        let include = root.join("include");
+        if !include.join(format!("embree{major}/rtcore.h")).is_file() {
+            continue;
+        }
+        for lib in ["lib", "lib64"] {
+            let library = root.join(lib).join(format!("libembree{major}.so"));
+            if library.exists() {
+                return Some(ExplicitEmbree {
+                    include,
+                    library,
+                    major,
+                });
+            }
+        }
+    }
+    None
+}
+
 fn embree_headers_present() -> bool {
     let mut roots: Vec<PathBuf> = vec!["/usr/include".into(), "/usr/local/include".into()];
     for var in ["EMBREE_DIR", "embree_DIR", "CMAKE_PREFIX_PATH"] {
@@ -27,24 +89,40 @@ fn embree_headers_present() -> bool {
         .any(|r| r.join("embree3/rtcore.h").is_file() || r.join("embree4/rtcore.h").is_file())
 }
 
+/// Builds the shim with CMake against `explicit` (or a package config) and returns the folder
+/// it was installed to.
+fn build_shim(explicit: Option<&ExplicitEmbree>) -> PathBuf {
+    let mut config = cmake::Config::new("cmake");
+    config.profile("Release");
+    if let Some(e) = explicit {
+        config
+            .define("GS_EMBREE_INCLUDE_DIR", &e.include)
+            .define("GS_EMBREE_LIBRARY", &e.library)
+            .define("GS_EMBREE_MAJOR", e.major.to_string());
+    }
+    config.build()
+}
+
 fn main() {
     println!("cargo:rerun-if-changed=wrapper");
     println!("cargo:rerun-if-changed=cmake");
-    for var in ["EMBREE_DIR", "embree_DIR", "CMAKE_PREFIX_PATH"] {
+    for var in EMBREE_VARS {
         println!("cargo:rerun-if-env-changed={var}");
     }
 
     if Command::new("cmake").arg("--version").output().is_err() {
         fail("glasscan: cmake not found; install it: apt-get install cmake");
     }
-    if !embree_headers_present() {
+    let explicit = explicit_embree();
+    if explicit.is_none() && !embree_headers_present() {
         fail(
             "glasscan: Embree headers (embree3/rtcore.h or embree4/rtcore.h) not found; \
-             install them: apt-get install libembree-dev (or set EMBREE_DIR)",
+             install them: apt-get install libembree-dev (or set EMBREE_DIR, or \
+             EMBREE4_INCLUDE_DIR and EMBREE4_LIB_DIR)",
         );
     }
 
-    let dst = cmake::Config::new("cmake").profile("Release").build();
+    let dst = build_shim(explicit.as_ref());
     println!(
         "cargo:rustc-link-search=native={}",
         dst.join("lib").display()
@@ -75,6 +153,10 @@ fn main() {
         });
     println!("cargo:rustc-link-search=native={}", dir.display());
     println!("cargo:rustc-link-lib=dylib={name}");
+    // An Embree outside the loader's default folders is found at run time through an rpath.
+    if explicit.is_some() {
+        println!("cargo:rustc-link-arg=-Wl,-rpath,{}", dir.display());
+    }
 
     let bindings = bindgen::Builder::default()
         .header("wrapper/glasscan_embree.h")

@@ -140,9 +140,9 @@ impl ScanConfig {
             ));
         }
         if let Some(p) = config.patterns.phase_shift {
-            if p.steps < 3 || p.period_px < 4 {
+            if !(3..=64).contains(&p.steps) || !(4..=65_536).contains(&p.period_px) {
                 return Err(bad(format!(
-                    "phase_shift needs steps ≥ 3 and period_px ≥ 4, got {} and {}",
+                    "phase_shift needs steps in 3..=64 and period_px in 4..=65536, got {} and {}",
                     p.steps, p.period_px
                 )));
             }
@@ -157,6 +157,31 @@ impl ScanConfig {
             height: self.patterns.height,
         }
     }
+}
+
+/// Refuses a monitor the camera cannot see the patterns on: behind the camera, or showing the
+/// camera its back (its z axis, x right × y down, must point away from the camera).
+fn check_monitor_placement(screen: &Screen) -> Result<(), String> {
+    let centre = screen.point(
+        (screen.width_px as f64 - 1.0) / 2.0,
+        (screen.height_px as f64 - 1.0) / 2.0,
+    );
+    if centre.z <= 0.0 {
+        return Err(format!(
+            "the monitor lies behind the camera (its centre at z = {:.1} mm in the camera frame): \
+             check translation_mm (camera frame, mm)",
+            centre.z
+        ));
+    }
+    let normal = screen.pose.rotation * nalgebra::Vector3::z();
+    if normal.dot(&centre.coords) <= 0.0 {
+        return Err(
+            "the monitor shows the camera its back (its z axis points towards the camera): check \
+             rotation (monitor frame → camera frame; monitor x right, y down)"
+                .into(),
+        );
+    }
+    Ok(())
 }
 
 impl Scan {
@@ -181,6 +206,20 @@ impl Scan {
                 screen.width_px,
                 screen.height_px
             )));
+        }
+        check_monitor_placement(&screen).map_err(|msg| ScanError::Config {
+            path: dir.join(&c.screen),
+            msg,
+        })?;
+        if axis_point.z <= 0.0 {
+            return Err(ScanError::Config {
+                path: dir.join(&c.turntable),
+                msg: format!(
+                    "the turntable axis point lies behind the camera (z = {:.1} mm in the camera \
+                     frame): check axis_point_mm",
+                    axis_point.z
+                ),
+            });
         }
         let turntable = Turntable {
             axis_point,

@@ -421,7 +421,7 @@ fn smoothness_gradients_match_finite_differences() {
     for kind in [
         Smoothness::NegLogOnePlusCos,
         Smoothness::LogTwoMinusCos,
-        Smoothness::Annealed { tau: 0.1 },
+        Smoothness::Tolerant { tau: 0.1 },
     ] {
         let total = |m: &TriMesh| {
             let mut acc = Accumulator::new(m.positions.len(), false);

@@ -2,7 +2,7 @@
 //! 0/1 and 0/255 masks) import to the same reconstruction inputs as the scan they were exported
 //! from; bad files are clear errors; hull and reconstruct run on an import.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::{Mutex, OnceLock};
 
@@ -414,4 +414,102 @@ fn bad_files_name_the_key_and_shape() {
         &import(&tmp.path().join("none.h5"), &out, &[]),
         "no such file",
     );
+}
+
+/// Every file below `dir` with its bytes, by relative path.
+fn snapshot(dir: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.insert(
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                );
+            }
+        }
+    }
+    out
+}
+
+/// A failed import over an earlier one (even with --force) leaves it byte-identical, and a
+/// non-empty folder is refused without --force.
+#[test]
+fn a_failed_import_leaves_the_previous_scan_as_it_was() {
+    let (_d, src) = source();
+    let tmp = tempfile::tempdir().unwrap();
+    let good = tmp.path().join("good.h5");
+    export_drt(src, &good, POINT_GREY);
+    let out = tmp.path().join("G");
+    let o = import(&good, &out, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let before = snapshot(&out);
+    assert!(before.len() > 2 * VIEWS, "{} files", before.len());
+
+    let bad = tmp.path().join("bad.h5");
+    export_drt(src, &bad, POINT_GREY);
+    {
+        let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        let f = hdf5::File::open_rw(&bad).unwrap();
+        f.unlink("screen_position").unwrap();
+        let (w, h) = (src.camera.width as usize, src.camera.height as usize);
+        let zeros = Array3::<f32>::zeros((VIEWS, w * h, 3));
+        f.new_dataset_builder()
+            .with_data(&zeros)
+            .create("screen_position")
+            .unwrap();
+        f.close().unwrap();
+    }
+    assert_fails_with(&import(&bad, &out, &[]), "not empty");
+    assert_fails_with(
+        &import(&bad, &out, &["--force"]),
+        "no object pixel has a monitor point",
+    );
+    assert!(
+        before == snapshot(&out),
+        "the failed import changed the scan"
+    );
+    let siblings = std::fs::read_dir(tmp.path()).unwrap().count();
+    assert_eq!(siblings, 3, "a temporary folder was left behind");
+    // The input is never the output.
+    assert_fails_with(
+        &import(&good, tmp.path(), &["--force"]),
+        "would overwrite the input",
+    );
+}
+
+/// A small file declaring a huge mask is refused before anything is allocated.
+#[test]
+fn a_declared_size_beyond_the_memory_limit_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("huge.h5");
+    {
+        let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        let f = hdf5::File::create(&file).unwrap();
+        let eye: Array3<f64> =
+            Array3::from_shape_fn((VIEWS, 4, 4), |(_, i, j)| (i == j) as u8 as f64);
+        f.new_dataset_builder()
+            .with_data(&eye)
+            .create("cam_proj")
+            .unwrap();
+        let k = Array2::from_shape_vec((3, 3), vec![1e3, 0.0, 5.0, 0.0, 1e3, 5.0, 0.0, 0.0, 1.0])
+            .unwrap();
+        f.new_dataset_builder()
+            .with_data(&k)
+            .create("cam_k")
+            .unwrap();
+        f.new_dataset::<u8>()
+            .chunk((1, 1000, 1000))
+            .shape((VIEWS, 100_000, 100_000))
+            .create("mask")
+            .unwrap();
+        f.close().unwrap();
+    }
+    assert!(std::fs::metadata(&file).unwrap().len() < 1 << 20);
+    let o = import(&file, &tmp.path().join("out"), &[]);
+    assert_fails_with(&o, "more than the limit");
 }

@@ -1,13 +1,15 @@
 //! `glasscan reconstruct`: resuming after a crash gives the uninterrupted result; extreme
 //! refractive indices; bad input.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::Vector3;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 fn glasscan(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_glasscan"))
@@ -42,46 +44,72 @@ fn small_scan_with_ior(dir: &Path, ior: f64) {
 /// One warm-up stage (DRT's, 200 iterations) and three of Large Steps.
 const CONFIG: &str = "warmup_stages = 1\nstages = 3\nstart_edge = 0.1\nfinal_edge = 0.04\niterations = 8\nrefraction_views = 2\n";
 
+/// The arguments of a seeded reconstruction of `scan` into `out` with [`CONFIG`].
+fn reconstruct_args(scan: &Path, config: &Path, out: &Path) -> Vec<String> {
+    [
+        "reconstruct",
+        scan.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--seed",
+        "7",
+    ]
+    .map(String::from)
+    .to_vec()
+}
+
+/// A small scan, the config file and an uninterrupted run's result.ply, in `dir`.
+fn uninterrupted_run(dir: &Path) -> (PathBuf, PathBuf, Vec<u8>) {
+    let scan = dir.join("scan");
+    small_scan(&scan);
+    let config = dir.join("c.toml");
+    std::fs::write(&config, CONFIG).unwrap();
+    let whole = dir.join("whole");
+    let o = run(&reconstruct_args(&scan, &config, &whole));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    (
+        scan,
+        config,
+        std::fs::read(whole.join("result.ply")).unwrap(),
+    )
+}
+
+fn run(args: &[String]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_glasscan"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+/// The number of stages the committed checkpoint in `out` says are done.
+fn stages_committed(out: &Path) -> Option<u64> {
+    let text = std::fs::read_to_string(out.join("checkpoint.json")).ok()?;
+    let v: serde_json::Value = serde_json::from_str(&text).ok()?;
+    v["stages_done"].as_u64()
+}
+
 #[test]
 fn a_killed_run_resumes_to_the_same_result() {
     let dir = tempfile::tempdir().unwrap();
-    let scan = dir.path().join("scan");
-    small_scan(&scan);
-    let config = dir.path().join("c.toml");
-    std::fs::write(&config, CONFIG).unwrap();
-    let args = |out: &Path| {
-        vec![
-            "reconstruct".to_string(),
-            scan.to_str().unwrap().to_string(),
-            "-o".into(),
-            out.to_str().unwrap().to_string(),
-            "--config".into(),
-            config.to_str().unwrap().to_string(),
-            "--seed".into(),
-            "7".into(),
-        ]
-    };
-    let whole = dir.path().join("whole");
-    let o = Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args(&whole))
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (scan, config, whole) = uninterrupted_run(dir.path());
 
-    // Kill the second run as soon as its first (warm-up) stage is saved: it is then in stage 2,
-    // the first of Large Steps.
+    // Kill the second run as soon as its first (warm-up) stage is committed: it is then in
+    // stage 2, the first of Large Steps.
     let killed = dir.path().join("killed");
+    let args = reconstruct_args(&scan, &config, &killed);
     let mut child = Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args(&killed))
+        .args(&args)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
     let t0 = Instant::now();
-    while !killed.join("stage_00.ply").is_file() {
+    while stages_committed(&killed).unwrap_or(0) < 1 {
         assert!(
-            t0.elapsed() < Duration::from_secs(120),
-            "stage 1 never finished"
+            t0.elapsed() < Duration::from_secs(300),
+            "stage 1 never committed"
         );
         std::thread::sleep(Duration::from_millis(5));
     }
@@ -92,30 +120,72 @@ fn a_killed_run_resumes_to_the_same_result() {
         "the run finished before it was killed"
     );
     // Without --resume the folder is refused; with it the run completes.
-    let o = Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args(&killed))
-        .output()
-        .unwrap();
+    let o = run(&args);
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--resume"));
-    let mut resume = args(&killed);
+    let mut resume = args.clone();
     resume.push("--resume".into());
-    let o = Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(&resume)
-        .output()
-        .unwrap();
+    let o = run(&resume);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(
-        std::fs::read(whole.join("result.ply")).unwrap(),
+        whole,
         std::fs::read(killed.join("result.ply")).unwrap(),
         "resumed result differs from the uninterrupted one"
     );
+    let out = dir.path().join("whole");
     for f in ["report.json", "loss.png", "hull.ply", "stage_03.ply"] {
-        assert!(whole.join(f).is_file(), "{f}");
+        assert!(out.join(f).is_file(), "{f}");
     }
     let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(whole.join("report.json")).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["settings"]["seed"], 7);
     assert_eq!(report["stages"].as_array().unwrap().len(), 4);
+    // --force starts the finished run over.
+    let mut force = args;
+    force.push("--force".into());
+    let o = run(&force);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(whole, std::fs::read(killed.join("result.ply")).unwrap());
+}
+
+/// Kills runs at seeded random instants (during the hull, a stage, a commit or the final
+/// writes) and resumes each, as often as it takes, to the uninterrupted result.
+#[test]
+fn runs_killed_at_random_instants_resume_to_the_same_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let t0 = Instant::now();
+    let (scan, config, whole) = uninterrupted_run(dir.path());
+    let whole_seconds = t0.elapsed().as_secs_f64();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for case in 0..5 {
+        let out = dir.path().join(format!("killed{case}"));
+        let mut args = reconstruct_args(&scan, &config, &out);
+        args.push("--resume".into());
+        // Up to three kills per case, then a run to the end.
+        for _ in 0..3 {
+            let mut child = Command::new(env!("CARGO_BIN_EXE_glasscan"))
+                .args(&args)
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .unwrap();
+            std::thread::sleep(Duration::from_secs_f64(
+                rng.random_range(0.0..whole_seconds),
+            ));
+            child.kill().unwrap();
+            child.wait().unwrap();
+        }
+        let o = run(&args);
+        assert!(
+            o.status.success(),
+            "case {case}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        assert_eq!(
+            whole,
+            std::fs::read(out.join("result.ply")).unwrap(),
+            "case {case}: resumed result differs from the uninterrupted one"
+        );
+    }
 }
 
 #[test]

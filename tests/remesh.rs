@@ -1,13 +1,10 @@
 //! Isotropic remeshing: the local operators, and the remesher's output on analytic shapes,
-//! sliver-ridden inputs and the shared scans.
-
-use std::path::Path;
+//! sliver-ridden inputs and marching-cubes surfaces.
 
 use glasscan::eval::sampled_distances;
 use glasscan::mesh::halfedge::HalfEdgeMesh;
-use glasscan::mesh::io::read_mesh;
 use glasscan::mesh::remesh::{remesh, RemeshError, RemeshOptions};
-use glasscan::mesh::shapes::{cuboid, ellipsoid, icosphere, perturb_radially, torus};
+use glasscan::mesh::shapes::{cuboid, ellipsoid, figurine, icosphere, perturb_radially, torus};
 use glasscan::mesh::stats::unique_edges;
 use glasscan::mesh::validate::validate;
 use glasscan::mesh::TriMesh;
@@ -136,16 +133,12 @@ fn remeshing_sliver_inputs() {
     check_remesh("torus with 300 slivers", &torus_slivers, 1.2);
 }
 
+/// Marching-cubes surfaces like a visual hull's (slivers, needles, a handle): a genus-1
+/// figurine at two sampling steps.
 #[test]
-fn remeshing_the_shared_meshes() {
-    for name in ["pig_vh", "dog_vh"] {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../shared/meshes/{name}.ply"));
-        assert!(
-            p.is_file(),
-            "{} is missing: the tests expect ../shared beside the checkout",
-            p.display()
-        );
-        check_remesh(name, &read_mesh(&p).unwrap(), 2.0);
+fn remeshing_marching_cubes_surfaces() {
+    for step in [0.8, 1.7] {
+        check_remesh(&format!("figurine at {step} mm"), &figurine(step), 2.0);
     }
 }
 

@@ -180,11 +180,11 @@ fn bad_input_is_refused() {
                 "1.0".into(),
             ],
             "refractive index",
-            1,
+            2,
         ),
         (
             vec!["--mesh".into(), s(&good), "--size".into(), "0x480".into()],
-            "at least 1",
+            "between 1 and 16384",
             2,
         ),
         (

@@ -23,7 +23,7 @@ use crate::hull::{visual_hull, HullOptions};
 use crate::mesh::io::read_mesh;
 use crate::reconstruct::config::Settings;
 use crate::reconstruct::plot::time_accuracy_plot;
-use crate::reconstruct::{self, stage_path, Progress};
+use crate::reconstruct::{self, stage_path, Existing, Progress, Start};
 use crate::scan::Scan;
 use crate::simulate::{simulate, SimulateOptions};
 use crate::util::atomic::write_atomic;
@@ -174,6 +174,8 @@ fn ensure_scan(mesh_path: &Path, dir: &Path, noisy: bool, log: &dyn Fn(&str)) ->
         spp: if noisy { 4 } else { 1 },
         noise: if noisy { 2.0 } else { 0.0 },
         blur_px: if noisy { 0.7 } else { 0.0 },
+        // The bench's own work folder: a scan left half made (decode interrupted) is replaced.
+        force: true,
         ..Default::default()
     };
     log(&format!(
@@ -231,13 +233,17 @@ fn run_one(
             stop.store(true, Ordering::SeqCst);
         });
     }
-    // A run cut at the budget ends with an error after its checkpoint; the stages it finished
-    // are read back from there.
-    let _ = reconstruct::run(&inputs, Some(&hull), &settings, dir, false, progress, &stop);
-    let ck: reconstruct::Checkpoint = serde_json::from_str(
-        &std::fs::read_to_string(reconstruct::checkpoint_path(dir))
-            .with_context(|| format!("{}: the run saved no checkpoint", dir.display()))?,
-    )?;
+    // A run cut at the budget ends after a stage's commit; the stages it finished are read back.
+    let ck = reconstruct::run(
+        &inputs,
+        Start::Mesh(&hull),
+        &settings,
+        dir,
+        Existing::Nothing,
+        progress,
+        &stop,
+    )?
+    .checkpoint;
     let quick = EvalOptions {
         samples: 200_000,
         ..EvalOptions::default()

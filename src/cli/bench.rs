@@ -173,7 +173,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         );
     }
     let scan = crate::scan::Scan::open(&a.scan)?;
-    let views = super::decode::parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
+    let views = super::common::parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let mesh_path = a
         .mesh
         .clone()

@@ -2,10 +2,12 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 
+use super::common::{
+    auto_or_open_share, bar, parse_views, positive_f32, share, share_f32, AutoShare,
+};
 use crate::decode::compare::{compare_view, Comparison};
 use crate::decode::mask::MaskOptions;
 use crate::decode::{decode_scan, DecodeOptions};
@@ -28,49 +30,28 @@ pub struct DecodeArgs {
     #[arg(long = "black-threshold", default_value_t = 40)]
     pub black_threshold: u8,
     /// Smallest bit contrast as a share of the pixel's white − black range (0: OpenCV's test).
-    #[arg(long = "min-contrast", default_value_t = 0.3)]
+    #[arg(long = "min-contrast", default_value_t = 0.3, value_parser = share_f32)]
     pub min_contrast: f32,
     /// Ignore the scan's phase-shift images (Gray code alone).
     #[arg(long = "no-phase")]
     pub no_phase: bool,
     /// Smallest phase modulation (B/A) for a phase-refined point.
-    #[arg(long = "min-modulation", default_value_t = 0.3)]
+    #[arg(long = "min-modulation", default_value_t = 0.3, value_parser = share)]
     pub min_modulation: f64,
     /// Mask rule 1: decoded shift from the background beyond the cells, monitor pixels.
-    #[arg(long = "shift-px", default_value_t = 2.0)]
+    #[arg(long = "shift-px", default_value_t = 2.0, value_parser = positive_f32)]
     pub shift_px: f32,
     /// Mask rule 3: relative drop of the white image against the background's (default: half
-    /// the normal-incidence Fresnel loss of the scan's IOR, or 5 × the view's white-ratio noise)
-    #[arg(long = "white-drop")]
-    pub white_drop: Option<f32>,
+    /// the normal-incidence Fresnel loss of the scan's IOR, or 5 × the view's white-ratio noise):
+    /// auto, or a share in (0, 1)
+    #[arg(long = "white-drop", default_value = "auto", value_parser = auto_or_open_share)]
+    pub white_drop: AutoShare,
     /// Object regions smaller than this are dropped, pixels.
-    #[arg(long = "min-component-px", default_value_t = 50)]
+    #[arg(long = "min-component-px", default_value_t = 50, value_parser = clap::value_parser!(i32).range(0..))]
     pub min_component_px: i32,
     /// Holes smaller than this are filled, pixels.
-    #[arg(long = "max-hole-px", default_value_t = 50)]
+    #[arg(long = "max-hole-px", default_value_t = 50, value_parser = clap::value_parser!(i32).range(0..))]
     pub max_hole_px: i32,
-}
-
-/// Parses "0-9,12" into view indices below `count`.
-pub fn parse_views(spec: Option<&str>, count: usize) -> Result<Vec<usize>> {
-    let Some(spec) = spec.filter(|s| *s != "all") else {
-        return Ok((0..count).collect());
-    };
-    let mut views = Vec::new();
-    for part in spec.split(',') {
-        let (a, b) = part.split_once('-').unwrap_or((part, part));
-        let (a, b): (usize, usize) = match (a.trim().parse(), b.trim().parse()) {
-            (Ok(a), Ok(b)) if a <= b => (a, b),
-            _ => bail!("--views '{spec}': '{part}' is not an index or a range like 3-7"),
-        };
-        if b >= count {
-            bail!("--views '{spec}': the scan has views 0-{}", count - 1);
-        }
-        views.extend(a..=b);
-    }
-    views.sort_unstable();
-    views.dedup();
-    Ok(views)
 }
 
 pub fn run(a: &DecodeArgs) -> Result<()> {
@@ -84,16 +65,12 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         min_modulation: a.min_modulation,
         mask: MaskOptions {
             shift_px: a.shift_px,
-            white_drop: a.white_drop,
+            white_drop: a.white_drop.0,
             min_component_px: a.min_component_px,
             max_hole_px: a.max_hole_px,
         },
     };
-    let bar = ProgressBar::new(views.len() as u64);
-    bar.set_style(
-        ProgressStyle::with_template("decode [{bar:40}] {pos}/{len} views ({eta})")
-            .expect("static template"),
-    );
+    let bar = bar("decode", views.len());
     let t0 = std::time::Instant::now();
     let summaries = decode_scan(&scan, &views, &o, |s| {
         if let Some(w) = &s.warning {

@@ -18,9 +18,13 @@ use crate::hull::{visual_hull, HullOptions};
 use crate::mesh::io::write_mesh;
 use crate::mesh::shapes::ellipsoid;
 use crate::reconstruct::config::Settings;
-use crate::reconstruct::{self, load_inputs};
+use crate::reconstruct::{self, load_inputs, Existing, Start};
 use crate::scan::Scan;
 use crate::simulate::{simulate, SimulateOptions};
+use crate::util::folder::StagedFolder;
+
+/// The file that marks a folder as the demo's own (the next demo may replace it).
+const DEMO_MARKER: &str = ".glasscan-demo";
 
 #[derive(Args, Debug)]
 pub struct DemoArgs {
@@ -50,12 +54,17 @@ fn line(name: &str, e: &EvalReport) -> String {
 
 pub fn run(args: &DemoArgs) -> Result<()> {
     let t0 = Instant::now();
-    if args.out.exists() {
-        std::fs::remove_dir_all(&args.out)
-            .with_context(|| format!("cannot clear the demo folder {}", args.out.display()))?;
-    }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
+    // Written into a temporary sibling, put in place at the end; only an earlier demo's folder
+    // (it has the marker file) is replaced.
+    let previous_demo = args.out.join(DEMO_MARKER).is_file();
+    let hint = "choose another --out (the demo replaces only a folder an earlier demo wrote)";
+    let staged = StagedFolder::new(&args.out, previous_demo, hint)?;
+    let out = staged.path().to_path_buf();
+    std::fs::write(
+        out.join(DEMO_MARKER),
+        "written by `glasscan demo`; the next demo replaces this folder\n",
+    )
+    .with_context(|| format!("cannot write into {}", out.display()))?;
 
     outln!("== 1. a built-in glass object: a three-lobed pebble with a dimple no silhouette shows, about 85 × 60 × 55 mm, IOR 1.4723");
     let mut object = ellipsoid(Vector3::new(40.0, 30.0, 25.0), 5);
@@ -69,10 +78,10 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             p.z *= 1.0 - 0.3 * (-(p.x * p.x + p.y * p.y) / 225.0).exp();
         }
     }
-    write_mesh(&args.out.join("object.ply"), &object)?;
+    write_mesh(&out.join("object.ply"), &object)?;
 
     outln!("== 2. simulate a scan: 24 views, 640×480, 4 samples per pixel, Gray-code captures");
-    let scan_dir = args.out.join("scan");
+    let scan_dir = out.join("scan");
     let sim = SimulateOptions {
         views: 24,
         width: 640,
@@ -105,7 +114,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         &HullOptions::default(),
         &ProgressBar::hidden(),
     )?;
-    write_mesh(&args.out.join("hull.ply"), &hull)?;
+    write_mesh(&out.join("hull.ply"), &hull)?;
     outln!(
         "   {} faces, {:.1} s",
         hull.faces.len(),
@@ -115,16 +124,17 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     outln!("== 5. reconstruct (preset fast)");
     let t = Instant::now();
     let bars = Bars::new();
-    let rec = args.out.join("reconstruction");
-    let (ck, result) = reconstruct::run(
+    let rec = out.join("reconstruction");
+    let finished = reconstruct::run(
         &inputs,
-        Some(&hull),
+        Start::Mesh(&hull),
         &settings,
         &rec,
-        false,
+        Existing::Nothing,
         &bars,
         &AtomicBool::new(false),
     )?;
+    let (ck, result) = (finished.checkpoint, finished.mesh);
     bars.bar.finish_and_clear();
     write_mesh(&rec.join("result.ply"), &result)?;
     crate::reconstruct::plot::loss_plot(
@@ -145,7 +155,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     outln!("{}", line("visual hull", &eh));
     outln!("{}", line("reconstruction", &er));
     super::write_json(
-        &args.out.join("eval.json"),
+        &out.join("eval.json"),
         &serde_json::json!({ "hull": eh.to_json(), "reconstruction": er.to_json() }),
     )?;
     outln!(
@@ -153,5 +163,5 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         t0.elapsed().as_secs_f64(),
         args.out.display()
     );
-    Ok(())
+    staged.commit()
 }

@@ -9,6 +9,7 @@ use crate::eval::error_map::write_error_map;
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::mesh::io::read_mesh;
 use crate::trace::{BuildMode, Device, Scene};
+use crate::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
 #[derive(Args, Debug)]
 pub struct EvalArgs {
@@ -51,6 +52,15 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         .find(|t| !(t.is_finite() && **t > 0.0))
     {
         bail!("--threshold-mm {t}: thresholds must be positive numbers of mm");
+    }
+    let inputs = [args.result.as_path(), args.reference.as_path()];
+    if let Some(p) = &args.json {
+        ensure_extension(p, "--json", &["json"])?;
+        ensure_output_spares_inputs(p, "--json", &inputs)?;
+    }
+    if let Some(p) = &args.error_map {
+        ensure_extension(p, "--error-map", &["png"])?;
+        ensure_output_spares_inputs(p, "--error-map", &inputs)?;
     }
     let result = read_mesh(&args.result)?;
     let reference = read_mesh(&args.reference)?;

@@ -5,12 +5,12 @@ use std::time::Instant;
 
 use anyhow::Result;
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 
-use super::decode::parse_views;
+use super::common::{bar, parse_views, positive};
 use crate::hull::{silhouettes, visual_hull, HullOptions};
 use crate::mesh::io::write_mesh;
 use crate::scan::Scan;
+use crate::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
 #[derive(Args, Debug)]
 pub struct HullArgs {
@@ -20,7 +20,7 @@ pub struct HullArgs {
     #[arg(short, long)]
     pub output: PathBuf,
     /// Voxel size of the fine grid, mm.
-    #[arg(long = "voxel-mm", default_value_t = 1.0)]
+    #[arg(long = "voxel-mm", default_value_t = 1.0, value_parser = positive)]
     pub voxel_mm: f64,
     /// Views to carve with: all (default), or indices and ranges such as 0-35,40.
     #[arg(long)]
@@ -29,7 +29,7 @@ pub struct HullArgs {
     #[arg(long, default_value_t = 0)]
     pub tolerance: usize,
     /// Remesh the surface to this edge length, mm (default: the voxel size).
-    #[arg(long = "edge-mm", conflicts_with = "raw")]
+    #[arg(long = "edge-mm", conflicts_with = "raw", value_parser = positive)]
     pub edge_mm: Option<f64>,
     /// Keep the marching-cubes surface as it is (no remesh).
     #[arg(long)]
@@ -41,6 +41,11 @@ pub struct HullArgs {
 
 pub fn run(a: &HullArgs) -> Result<()> {
     let t0 = Instant::now();
+    ensure_output_spares_inputs(&a.output, "--output", &[&a.scan])?;
+    if let Some(r) = &a.report {
+        ensure_extension(r, "--report", &["json"])?;
+        ensure_output_spares_inputs(r, "--report", &[&a.scan, &a.output])?;
+    }
     let scan = Scan::open(&a.scan)?;
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let (sils, warnings) = silhouettes(&scan, &views)?;
@@ -58,10 +63,7 @@ pub fn run(a: &HullArgs) -> Result<()> {
         },
         ..HullOptions::default()
     };
-    let bar = ProgressBar::new(0).with_style(
-        ProgressStyle::with_template("hull {msg} [{bar:30}] {pos}/{len} ({eta})")
-            .expect("static template"),
-    );
+    let bar = bar("hull", 0);
     let (mesh, mut report) = visual_hull(&sils, &o, &bar)?;
     bar.finish_and_clear();
     report.seconds_silhouettes = seconds_silhouettes;

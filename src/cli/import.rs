@@ -7,6 +7,7 @@ use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::import::drt::{import_drt, DrtCamera, DRT_VIEWS};
+use crate::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]
 pub struct ImportDrtArgs {
@@ -21,6 +22,9 @@ pub struct ImportDrtArgs {
     /// Refractive index of the object (DRT's files do not record it).
     #[arg(long, default_value_t = 1.4723)]
     pub ior: f64,
+    /// Replace a non-empty output folder (whole, once the import succeeded).
+    #[arg(long)]
+    pub force: bool,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -45,7 +49,8 @@ pub fn run(a: &ImportDrtArgs) -> Result<()> {
         CameraArg::Redmi => DrtCamera::Redmi,
     });
     let t0 = std::time::Instant::now();
-    let r = import_drt(&a.file, &a.output, camera, a.ior, |_| bar.inc(1))?;
+    ensure_output_spares_inputs(&a.output, "--output", &[&a.file])?;
+    let r = import_drt(&a.file, &a.output, camera, a.ior, a.force, |_| bar.inc(1))?;
     bar.finish_and_clear();
     outln!(
         "imported {} ({:?}, {}×{}, {DRT_VIEWS} views) into {} in {:.1} s",

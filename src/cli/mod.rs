@@ -20,6 +20,7 @@ macro_rules! outln {
 
 mod bench;
 mod calibrate;
+mod common;
 mod decode;
 mod demo;
 mod eval;
@@ -42,6 +43,10 @@ use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Memory limit, GiB: sizes from files and arguments that would need more are refused
+    /// before anything is allocated (default: 3/4 of the machine's memory).
+    #[arg(long = "max-memory-gb", global = true, value_parser = common::positive)]
+    max_memory_gb: Option<f64>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -97,6 +102,9 @@ pub fn is_broken_pipe(e: &anyhow::Error) -> bool {
 pub fn run() -> Result<()> {
     let matches = Cli::command().long_version(long_version()).get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    if let Some(gb) = cli.max_memory_gb {
+        crate::util::budget::set_limit_gb(gb).map_err(anyhow::Error::msg)?;
+    }
     match cli.command {
         Command::Info(a) => info::run(&a),
         Command::Eval(a) => eval::run(&a),

@@ -10,7 +10,7 @@ use crate::patterns::{GrayCode, PhaseShift};
 #[derive(Args, Debug)]
 pub struct PatternsArgs {
     /// Monitor resolution, WIDTHxHEIGHT pixels.
-    #[arg(long, value_parser = super::simulate::parse_size)]
+    #[arg(long, value_parser = super::common::parse_size)]
     pub screen: (u32, u32),
     /// Folder for the images.
     #[arg(long)]

@@ -5,18 +5,18 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::decode::parse_views;
+use super::common::parse_views;
 use crate::eval::{evaluate, EvalOptions};
-use crate::hull::{visual_hull, HullOptions};
+use crate::hull::HullOptions;
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::stats::quality;
 use crate::reconstruct::config::Settings;
 use crate::reconstruct::plot::loss_plot;
-use crate::reconstruct::{self, checkpoint_path, IterationRecord, Progress, StageReport};
+use crate::reconstruct::{self, output, Existing, IterationRecord, Progress, StageReport, Start};
 use crate::scan::Scan;
 
 #[derive(Args, Debug)]
@@ -36,6 +36,10 @@ pub struct ReconstructArgs {
     /// Continue the run in the output folder from its last checkpoint.
     #[arg(long)]
     pub resume: bool,
+    /// Start over in an output folder that holds a run (its glasscan files are removed first;
+    /// other files are never touched, and refuse the folder).
+    #[arg(long, conflicts_with = "resume")]
+    pub force: bool,
     /// Views to use: all (default), or indices and ranges such as 0-35.
     #[arg(long)]
     pub views: Option<String>,
@@ -46,7 +50,7 @@ pub struct ReconstructArgs {
     #[arg(long)]
     pub init: Option<PathBuf>,
     /// Voxel size of the visual hull, mm.
-    #[arg(long = "hull-voxel-mm", default_value_t = 1.0)]
+    #[arg(long = "hull-voxel-mm", default_value_t = 1.0, value_parser = super::common::positive)]
     pub hull_voxel_mm: f64,
 }
 
@@ -126,32 +130,26 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
         settings.seed = seed;
     }
     settings.check().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let existing = output::prepare(&a.output, a.resume, a.force)?;
     let (inputs, warnings) = reconstruct::load_inputs(&scan, &views, settings.target_weights)?;
     for w in &warnings {
         eprintln!("warning: {w}");
     }
-    let resuming = a.resume && checkpoint_path(&a.output).is_file();
-    let init = if resuming {
-        None
-    } else if let Some(p) = &a.init {
-        let m = read_mesh(p)?;
-        crate::mesh::validate::ensure_valid(&m)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-        Some(m)
-    } else {
-        eprintln!(
-            "visual hull ({} views, {} mm voxels) ...",
-            inputs.silhouettes.len(),
-            a.hull_voxel_mm
-        );
-        let o = HullOptions {
+    let start = match &a.init {
+        Some(p) => {
+            let m = read_mesh(p)?;
+            crate::mesh::validate::ensure_valid(&m)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            Some(m)
+        }
+        None => None,
+    };
+    let start = match &start {
+        Some(m) => Start::Mesh(m),
+        None => Start::Hull(HullOptions {
             voxel_mm: a.hull_voxel_mm,
             ..HullOptions::default()
-        };
-        let (hull, _) = visual_hull(&inputs.silhouettes, &o, &ProgressBar::hidden())?;
-        std::fs::create_dir_all(&a.output)?;
-        write_mesh(&a.output.join("hull.ply"), &hull)?;
-        Some(hull)
+        }),
     };
     let stop = Arc::new(AtomicBool::new(false));
     {
@@ -164,17 +162,24 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
             eprintln!("\nstopping after this stage's checkpoint (Ctrl-C again to quit now)");
         });
     }
+    if matches!(existing, Existing::Nothing) && matches!(start, Start::Hull(_)) {
+        eprintln!(
+            "visual hull ({} views, {} mm voxels) ...",
+            inputs.silhouettes.len(),
+            a.hull_voxel_mm
+        );
+    }
     let bars = Bars::new();
-    let (ck, mesh) = reconstruct::run(
-        &inputs,
-        init.as_ref(),
-        &settings,
-        &a.output,
-        a.resume,
-        &bars,
-        &stop,
-    )?;
+    let finished = reconstruct::run(&inputs, start, &settings, &a.output, existing, &bars, &stop)?;
     bars.bar.finish_and_clear();
+    let (ck, mesh) = (finished.checkpoint, finished.mesh);
+    if !finished.complete {
+        bail!(
+            "stopped after stage {} of {} (checkpoint saved): continue with --resume",
+            ck.stages_done,
+            settings.total_stages()
+        );
+    }
     write_mesh(&a.output.join("result.ply"), &mesh)?;
     loss_plot(
         &a.output.join("loss.png"),

@@ -7,9 +7,11 @@ use anyhow::Result;
 use clap::Args;
 
 use crate::bench::remesh::{figures, RemeshFigures};
+use crate::eval::fidelity::remesh_checked;
 use crate::mesh::io::{read_mesh, write_mesh};
-use crate::mesh::remesh::{remesh, AdaptiveSizing, RemeshOptions};
+use crate::mesh::remesh::{AdaptiveSizing, RemeshOptions};
 use crate::mesh::stats::{quality, MeshQuality};
+use crate::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]
 pub struct RemeshArgs {
@@ -46,6 +48,7 @@ pub struct RemeshArgs {
 }
 
 pub fn run(a: &RemeshArgs) -> Result<()> {
+    ensure_output_spares_inputs(&a.output, "--output", &[&a.input])?;
     let input = read_mesh(&a.input)?;
     let adaptive = a.adaptive.then(|| AdaptiveSizing {
         min_edge_mm: a.min_edge_mm.unwrap_or(a.edge_mm / 5.0),
@@ -59,7 +62,7 @@ pub fn run(a: &RemeshArgs) -> Result<()> {
         feature_angle_deg: a.feature_angle_deg,
     };
     let t0 = Instant::now();
-    let output = remesh(&input, &opts)?;
+    let (output, _) = remesh_checked(&input, &opts, a.seed)?;
     let seconds = t0.elapsed().as_secs_f64();
     write_mesh(&a.output, &output)?;
     let fig = figures(&input, &output, seconds, a.seed)?;

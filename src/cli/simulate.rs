@@ -4,12 +4,14 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 
+use super::common::{bar, ior, non_negative, parse_size, positive, positive_share};
 use crate::mesh::io::read_mesh;
 use crate::patterns::PhaseShift;
 use crate::simulate::{simulate, SimulateOptions};
+use crate::simulate::{MAX_SPP, MAX_VIEWS};
 use crate::trace::path::NormalModel;
+use crate::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]
 pub struct SimulateArgs {
@@ -20,31 +22,31 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Turntable views, evenly spaced over 360°.
-    #[arg(long, default_value_t = 72)]
-    pub views: usize,
+    #[arg(long, default_value_t = 72, value_parser = clap::value_parser!(u32).range(1..=MAX_VIEWS as i64))]
+    pub views: u32,
     /// Camera image size, WIDTHxHEIGHT pixels.
     #[arg(long, default_value = "1280x960", value_parser = parse_size)]
     pub size: (u32, u32),
     /// Refractive index of the object.
-    #[arg(long, default_value_t = 1.4723)]
+    #[arg(long, default_value_t = 1.4723, value_parser = ior)]
     pub ior: f64,
     /// Monitor resolution, WIDTHxHEIGHT pixels.
     #[arg(long, default_value = "1920x1080", value_parser = parse_size)]
     pub screen: (u32, u32),
     /// Monitor pixel pitch, mm.
-    #[arg(long = "pitch-mm", default_value_t = 0.2715)]
+    #[arg(long = "pitch-mm", default_value_t = 0.2715, value_parser = positive)]
     pub pitch_mm: f64,
     /// Area samples per camera pixel (1: pixel centres only).
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..=MAX_SPP as i64))]
     pub spp: u32,
     /// Sensor noise, standard deviation in grey levels.
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
     pub noise: f64,
     /// Gaussian blur of the captures, sigma in pixels.
-    #[arg(long = "blur", default_value_t = 0.0)]
+    #[arg(long = "blur", default_value_t = 0.0, value_parser = non_negative)]
     pub blur_px: f64,
     /// Refractions traced before a path is given up.
-    #[arg(long = "max-refractions", default_value_t = 8)]
+    #[arg(long = "max-refractions", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub max_refractions: u32,
     /// Write calibration and ground truth only, no capture images.
     #[arg(long = "decoded-only")]
@@ -53,13 +55,13 @@ pub struct SimulateArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Camera centre to turntable axis, mm.
-    #[arg(long = "camera-distance-mm", default_value_t = 550.0)]
+    #[arg(long = "camera-distance-mm", default_value_t = 550.0, value_parser = positive)]
     pub camera_distance_mm: f64,
     /// Turntable axis to monitor, mm.
-    #[arg(long = "screen-distance-mm", default_value_t = 250.0)]
+    #[arg(long = "screen-distance-mm", default_value_t = 250.0, value_parser = positive)]
     pub screen_distance_mm: f64,
     /// Share of the image height the object fills.
-    #[arg(long, default_value_t = 0.6)]
+    #[arg(long, default_value_t = 0.6, value_parser = positive_share)]
     pub fill: f64,
     /// Normals the object refracts with: vertex (interpolated, a smooth object) or face (flat
     /// facets).
@@ -69,7 +71,7 @@ pub struct SimulateArgs {
     #[arg(long = "no-fresnel")]
     pub no_fresnel: bool,
     /// Also render N-step phase-shift images after the Gray code.
-    #[arg(long = "phase-shift")]
+    #[arg(long = "phase-shift", value_parser = clap::value_parser!(u32).range(3..=64))]
     pub phase_steps: Option<u32>,
     /// Lens distortion of the camera, OpenCV's k1,k2,p1,p2,k3.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0; 5])]
@@ -78,26 +80,12 @@ pub struct SimulateArgs {
     /// turntable, the background capture for the monitor) under SCAN/calibration/.
     #[arg(long = "calibration-images")]
     pub calibration_images: bool,
+    /// Replace a non-empty output folder (whole, once the new scan is written).
+    #[arg(long)]
+    pub force: bool,
     /// Period of the phase-shift sinusoid, monitor pixels.
-    #[arg(long = "period-px", default_value_t = 64, requires = "phase_steps")]
+    #[arg(long = "period-px", default_value_t = 64, requires = "phase_steps", value_parser = clap::value_parser!(u32).range(4..=65_536))]
     pub period_px: u32,
-}
-
-/// Parses WIDTHxHEIGHT (both at least 1).
-pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x960"))?;
-    let p = |v: &str| {
-        v.trim()
-            .parse::<u32>()
-            .map_err(|_| format!("'{s}': '{v}' is not a whole number"))
-    };
-    let (w, h) = (p(w)?, p(h)?);
-    if w == 0 || h == 0 {
-        return Err(format!("'{s}': both sizes must be at least 1"));
-    }
-    Ok((w, h))
 }
 
 fn parse_normals(s: &str) -> Result<NormalModel, String> {
@@ -109,10 +97,11 @@ fn parse_normals(s: &str) -> Result<NormalModel, String> {
 }
 
 pub fn run(a: &SimulateArgs) -> Result<()> {
+    ensure_output_spares_inputs(&a.out, "--out", &[&a.mesh])?;
     let mesh = read_mesh(&a.mesh)?;
     let o =
         SimulateOptions {
-            views: a.views,
+            views: a.views as usize,
             width: a.size.0,
             height: a.size.1,
             ior: a.ior,
@@ -138,12 +127,9 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
                 anyhow::anyhow!("--distortion takes 5 coefficients: k1,k2,p1,p2,k3")
             })?,
             calibration_images: a.calibration_images,
+            force: a.force,
         };
-    let bar = ProgressBar::new(a.views as u64);
-    bar.set_style(
-        ProgressStyle::with_template("simulate [{bar:40}] {pos}/{len} views ({eta})")
-            .expect("static template"),
-    );
+    let bar = bar("simulate", a.views as usize);
     let r = simulate(&mesh, &a.out, &o, |_| bar.inc(1))?;
     bar.finish_and_clear();
     outln!(

@@ -89,8 +89,8 @@ pub fn read_rays(path: &Path, pixels: usize) -> Result<Vec<PixelRay>> {
     if bytes.len() < 16 || &bytes[..8] != RAYS_MAGIC {
         return Err(bad());
     }
-    let n = u64::from_le_bytes(bytes[8..16].try_into().expect("8 bytes")) as usize;
-    if bytes.len() != 16 + 28 * n {
+    let n = u64::from_le_bytes(bytes[8..16].try_into().expect("8 bytes"));
+    if n.checked_mul(28).and_then(|b| b.checked_add(16)) != Some(bytes.len() as u64) {
         return Err(bad());
     }
     let f = |b: &[u8]| f32::from_le_bytes(b.try_into().expect("4 bytes")) as f64;
@@ -258,6 +258,17 @@ impl DecodedScan {
         if !path.is_file() {
             bail!("{}: missing from the decoded data", path.display());
         }
+        // The size a PNG declares is checked before OpenCV allocates it.
+        if let Some((w, h)) = png_size(path) {
+            if (w, h) != self.size {
+                bail!(
+                    "{}: {w}×{h} pixels, but the camera (camera.yml) takes {}×{}; decode again",
+                    path.display(),
+                    self.size.0,
+                    self.size.1
+                );
+            }
+        }
         let m = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_UNCHANGED)
             .with_context(|| format!("cannot read {}", path.display()))?;
         if m.empty() {
@@ -281,4 +292,16 @@ impl DecodedScan {
         }
         Ok(if m.is_continuous() { m } else { m.try_clone()? })
     }
+}
+
+/// The width and height a PNG file's header declares; `None` for anything else.
+fn png_size(path: &Path) -> Option<(u32, u32)> {
+    use std::io::Read;
+    let mut head = [0u8; 24];
+    std::fs::File::open(path).ok()?.read_exact(&mut head).ok()?;
+    if &head[..8] != b"\x89PNG\r\n\x1a\n" || &head[12..16] != b"IHDR" {
+        return None;
+    }
+    let be = |b: &[u8]| u32::from_be_bytes(b.try_into().expect("4 bytes"));
+    Some((be(&head[16..20]), be(&head[20..24])))
 }

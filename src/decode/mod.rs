@@ -18,6 +18,7 @@ use serde::{Deserialize, Serialize};
 use crate::patterns::{GrayCode, PhaseShift};
 use crate::scan::Scan;
 use crate::util::fixed::{FixedPoint, NONE};
+use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
 use graycode::{decode_view, BitTest, PixelDecode};
 use mask::{clean, raw_mask, BackgroundPixel, MaskOptions};
@@ -144,7 +145,8 @@ pub struct ViewSummary {
     pub warning: Option<String>,
 }
 
-/// Decodes views `views` of `scan` into `scan/decoded/`.
+/// Decodes views `views` of `scan` into `scan/decoded/` (replaced whole once the decode is
+/// complete; a failure leaves the previous decode as it was).
 pub fn decode_scan(
     scan: &Scan,
     views: &[usize],
@@ -155,7 +157,9 @@ pub fn decode_scan(
     let phase_shift = scan.config.patterns.phase_shift.filter(|_| o.use_phase);
     let phase = phase_shift.as_ref();
     let size = (scan.camera.width, scan.camera.height);
-    let out = scan.dir.join("decoded");
+    // The new decode replaces `decoded/` whole once it is complete; until then the old one stays.
+    let staged = StagedFolder::new(&scan.dir.join("decoded"), true, "")?;
+    let out = staged.path().to_path_buf();
     std::fs::create_dir_all(out.join("preview"))
         .with_context(|| format!("cannot create {}", out.display()))?;
     let background = background_reference(scan, &code, phase, size, o)?;
@@ -186,6 +190,7 @@ pub fn decode_scan(
         summaries.push(summary);
     }
     form::write_summary(&out, &fixed, &summaries)?;
+    staged.commit()?;
     Ok(summaries)
 }
 

@@ -10,6 +10,7 @@
 //! - Hausdorff: the largest distance seen in either direction, vertices included (mm).
 
 pub mod error_map;
+pub mod fidelity;
 
 use std::collections::BTreeMap;
 
@@ -92,7 +93,18 @@ pub fn evaluate(
     result: &TriMesh,
     reference: &TriMesh,
     options: &EvalOptions,
-) -> Result<EvalReport, TraceError> {
+) -> Result<EvalReport, EvalError> {
+    for (name, m) in [("result", result), ("reference", reference)] {
+        if m.area().is_nan() || m.area() <= 0.0 {
+            return Err(EvalError::NoArea(name));
+        }
+    }
+    crate::util::budget::check(
+        &format!("{} samples per mesh", options.samples),
+        options.samples as u128,
+        BYTES_PER_SAMPLE,
+        "use fewer --samples",
+    )?;
     let device = Device::new()?;
     let ref_scene = Scene::new(&device, reference, BuildMode::Static)?;
     let res_scene = Scene::new(&device, result, BuildMode::Static)?;
@@ -107,12 +119,12 @@ pub fn evaluate(
         options.seed.wrapping_add(1),
     )?;
     let d_vert: Vec<f64> = ref_scene
-        .closest_points(&result.positions)?
+        .closest_points(&used_vertices(result))?
         .into_iter()
         .map(|c| c.dist)
         .collect();
     let d_ref_vert: Vec<f64> = res_scene
-        .closest_points(&reference.positions)?
+        .closest_points(&used_vertices(reference))?
         .into_iter()
         .map(|c| c.dist)
         .collect();
@@ -151,6 +163,35 @@ pub fn evaluate(
         hausdorff_mm,
         samples: options.samples,
     })
+}
+
+/// Why [`evaluate`] failed.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error("the {0} mesh has no area (no face, or only degenerate ones): nothing to measure")]
+    NoArea(&'static str),
+    #[error(transparent)]
+    Budget(#[from] crate::util::budget::OverBudget),
+    #[error(transparent)]
+    Trace(#[from] TraceError),
+}
+
+/// Memory per sample and side: the point and normal, its closest point and distance.
+const BYTES_PER_SAMPLE: u128 = 2 * 112;
+
+/// The positions of the vertices some face uses (a stray vertex is no part of the surface).
+fn used_vertices(mesh: &TriMesh) -> Vec<Point3<f64>> {
+    let mut used = vec![false; mesh.positions.len()];
+    for f in &mesh.faces {
+        for &v in f {
+            used[v as usize] = true;
+        }
+    }
+    mesh.positions
+        .iter()
+        .zip(used)
+        .filter_map(|(p, u)| u.then_some(*p))
+        .collect()
 }
 
 /// Distances (mm) from `samples` points drawn uniformly by area on `from` (seeded) to the surface

@@ -71,6 +71,9 @@ pub struct CarveStats {
     pub evaluated_points: usize,
 }
 
+/// The most fine voxels along any axis of the hull's grid (0.05 mm over 200 mm).
+pub const MAX_VOXELS_PER_AXIS: usize = 4096;
+
 /// Carves the fine field: returns the grid, the sampled surface blocks, and figures.
 pub fn carve(
     field: &Field,
@@ -132,9 +135,24 @@ pub fn carve(
         + Vector3::repeat(voxel_mm);
     let nb: [usize; 3] =
         std::array::from_fn(|a| ((hi[a] - lo[a]) / (voxel_mm * block as f64)).ceil() as usize);
-    if nb.iter().map(|&n| n * block).max().unwrap_or(0) >= 1 << 20 {
-        bail!("--voxel-mm {voxel_mm} is too fine for an object this size (over a million voxels per axis)");
+    let widest = nb.iter().map(|&n| n * block).max().unwrap_or(0);
+    if widest > MAX_VOXELS_PER_AXIS {
+        bail!(
+            "--voxel-mm {voxel_mm} is too fine for an object this size: {widest} voxels across, at \
+             most {MAX_VOXELS_PER_AXIS}; use at least {:.4} mm",
+            voxel_mm * widest as f64 / MAX_VOXELS_PER_AXIS as f64
+        );
     }
+    // A class byte per block, and the corner values of the surface blocks (about the area of
+    // the grid's six faces in blocks).
+    let nb_max = *nb.iter().max().unwrap_or(&0) as u128;
+    crate::util::budget::check(
+        &format!("a {}³-block grid (--voxel-mm {voxel_mm})", nb_max),
+        nb.iter().map(|&n| n as u128).product::<u128>()
+            + 6 * nb_max * nb_max * 4 * ((block + 1) as u128).pow(3),
+        1,
+        "use a larger --voxel-mm",
+    )?;
     let dims = nb.map(|n| n * block);
     stats.dims = dims;
     stats.origin = [lo.x, lo.y, lo.z];

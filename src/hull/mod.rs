@@ -13,9 +13,10 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::decode::form::DecodedScan;
+use crate::eval::fidelity::remesh_checked;
 use crate::mesh::components::keep_large_components;
 use crate::mesh::marching_cubes::marching_cubes;
-use crate::mesh::remesh::{remesh, RemeshOptions};
+use crate::mesh::remesh::RemeshOptions;
 use crate::mesh::validate::ensure_valid;
 use crate::mesh::TriMesh;
 use crate::scan::Scan;
@@ -161,7 +162,9 @@ pub fn visual_hull(
     let mesh = match o.edge_mm {
         Some(h) => {
             bar.set_message("remesh");
-            remesh(&mc, &RemeshOptions::uniform(h))?
+            remesh_checked(&mc, &RemeshOptions::uniform(h), 0)
+                .context("remeshing the hull (--edge-mm)")?
+                .0
         }
         None => mc,
     };

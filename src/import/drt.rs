@@ -28,6 +28,7 @@ use crate::decode::ViewSummary;
 use crate::rig::{Camera, Screen, Turntable};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::util::fixed::FixedPoint;
+use crate::util::folder::{StagedFolder, FORCE_HINT};
 use crate::util::image::write_pixels;
 
 /// DRT's view count.
@@ -69,6 +70,10 @@ struct DrtFile {
     grid_positions: bool,
 }
 
+/// Memory per pixel of a view being imported: the mask, three rows of f64 triples read from the
+/// file, and the ray kept.
+const BYTES_PER_PIXEL: u128 = 8 + 3 * 24 + 56;
+
 impl DrtFile {
     fn open(path: &Path) -> Result<Self> {
         if !path.is_file() {
@@ -93,6 +98,18 @@ impl DrtFile {
             );
         }
         (f.height, f.width) = (mask[1], mask[2]);
+        // A view is read whole: the mask, three per-pixel rows, and the rays kept.
+        crate::util::budget::check(
+            &format!(
+                "{}: one view of {}×{} pixels ('mask')",
+                path.display(),
+                mask[2],
+                mask[1]
+            ),
+            (mask[1] as u128) * (mask[2] as u128),
+            BYTES_PER_PIXEL,
+            "is the file damaged? DRT's cameras are 1280×960 and 1920×1080",
+        )?;
         let (n, h, w) = (f.width * f.height, f.height, f.width);
         let found = f.expect(
             "screen_position",
@@ -175,9 +192,25 @@ fn rigid(m: &Matrix4<f64>) -> Option<Isometry3<f64>> {
     })
 }
 
-/// Imports `path` into the scan folder `out` (created); `camera` overrides the inference from
-/// the image size; `progress(k)` after each view.
+/// Imports `path` into the scan folder `out`; `camera` overrides the inference from the image
+/// size; `progress(k)` after each view. The scan is written into a temporary sibling that
+/// replaces `out` whole on success; a non-empty `out` is refused unless `force`.
 pub fn import_drt(
+    path: &Path,
+    out: &Path,
+    camera: Option<DrtCamera>,
+    ior: f64,
+    force: bool,
+    progress: impl FnMut(usize),
+) -> Result<ImportReport> {
+    let staged = StagedFolder::new(out, force, FORCE_HINT)?;
+    let report = import_into(path, staged.path(), camera, ior, progress)?;
+    staged.commit()?;
+    Ok(report)
+}
+
+/// [`import_drt`]'s work, into the folder `out` (the staging folder).
+fn import_into(
     path: &Path,
     out: &Path,
     camera: Option<DrtCamera>,

@@ -19,9 +19,9 @@ pub enum Smoothness {
     NegLogOnePlusCos,
     /// log(2 − cos θ) (a published reproduction): bounded, gentle on sharp features.
     LogTwoMinusCos,
-    /// τ·log(1 + (1 − cos θ)/τ): log(2 − cos θ) at τ = 1, and as τ shrinks over the iterations
-    /// (the optimiser's schedule) ever more tolerant of large angles.
-    Annealed { tau: f64 },
+    /// τ·log(1 + (1 − cos θ)/τ) with a fixed τ > 0: log(2 − cos θ) at τ = 1, and the smaller
+    /// τ, the more tolerant of large angles (sharp features).
+    Tolerant { tau: f64 },
 }
 
 impl Smoothness {
@@ -30,7 +30,7 @@ impl Smoothness {
         match *self {
             Smoothness::NegLogOnePlusCos => (-(1.0 + c).ln(), -1.0 / (1.0 + c)),
             Smoothness::LogTwoMinusCos => ((2.0 - c).ln(), -1.0 / (2.0 - c)),
-            Smoothness::Annealed { tau } => {
+            Smoothness::Tolerant { tau } => {
                 let x = (1.0 - c) / tau;
                 (tau * x.ln_1p(), -1.0 / (1.0 + x))
             }

@@ -261,6 +261,9 @@ impl PropertyAccess for PlyFace {
     }
 }
 
+/// Bytes a PLY element (vertex, face) takes once read, as the budget counts them.
+const PLY_BYTES_PER_ELEMENT: u128 = 96;
+
 fn read_ply(path: &Path) -> Result<RawMesh, MeshIoError> {
     let file = File::open(path).map_err(|cause| MeshIoError::Open {
         path: path.into(),
@@ -286,6 +289,14 @@ fn read_ply(path: &Path) -> Result<RawMesh, MeshIoError> {
     let mut verts: Option<Vec<PlyVertex>> = None;
     let mut faces: Option<Vec<PlyFace>> = None;
     for (name, element) in &header.elements {
+        // The reader sizes its lists from the header's counts: check them first.
+        crate::util::budget::check(
+            &format!("the header's {} '{name}' elements", element.count),
+            element.count as u128,
+            PLY_BYTES_PER_ELEMENT,
+            "is the file damaged? a mesh of this size needs a larger machine",
+        )
+        .map_err(|e| parse_err(&e))?;
         match name.as_str() {
             "vertex" => {
                 let v = vparser
@@ -427,6 +438,7 @@ fn read_obj(path: &Path) -> Result<RawMesh, MeshIoError> {
     };
     let mut positions: Vec<[f64; 3]> = Vec::new();
     let mut polygons = Vec::new();
+    let mut face_lines = Vec::new();
     for (n, line) in BufReader::new(file).lines().enumerate() {
         let line = line.map_err(|e| parse_err(n + 1, e.to_string()))?;
         let mut words = line.split_whitespace();
@@ -451,19 +463,42 @@ fn read_obj(path: &Path) -> Result<RawMesh, MeshIoError> {
                             parse_err(n + 1, format!("'{w}' is not a vertex index"))
                         })?;
                         // OBJ indices are 1-based; negative ones count back from the last vertex.
-                        match i {
-                            0 => Err(parse_err(
+                        let converted = match i {
+                            0 => -1,
+                            i if i < 0 => positions.len() as i64 + i,
+                            i => i - 1,
+                        };
+                        if converted < 0 {
+                            return Err(parse_err(
                                 n + 1,
-                                "vertex index 0 (OBJ indices start at 1)".into(),
-                            )),
-                            i if i < 0 => Ok(positions.len() as i64 + i),
-                            i => Ok(i - 1),
+                                format!(
+                                    "vertex index {w}: OBJ indices start at 1 (or count back \
+                                     from -1), and {} vertices precede this face",
+                                    positions.len()
+                                ),
+                            ));
                         }
+                        Ok(converted)
                     })
                     .collect::<Result<Vec<i64>, _>>()?;
                 polygons.push(poly);
+                face_lines.push(n + 1);
             }
             _ => {}
+        }
+    }
+    // Indices past the end, quoted as written (1-based) with their line.
+    for (poly, line) in polygons.iter().zip(&face_lines) {
+        if let Some(&bad) = poly.iter().find(|&&i| i as usize >= positions.len()) {
+            return Err(parse_err(
+                *line,
+                format!(
+                    "vertex index {}: the file has {} vertices (OBJ indices 1..={})",
+                    bad + 1,
+                    positions.len(),
+                    positions.len()
+                ),
+            ));
         }
     }
     Ok((positions, polygons))

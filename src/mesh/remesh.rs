@@ -51,7 +51,8 @@ impl RemeshOptions {
 }
 
 /// Curvature-adaptive target edge lengths: h = sqrt(6ε/κ − 3ε²) (the edge length whose chord
-/// deviates by ε from a circle of curvature κ), clamped to [min_edge_mm, edge_mm].
+/// deviates by ε from a circle of curvature κ) where ε < 1/κ, else the largest; clamped to
+/// [min_edge_mm, edge_mm]. A larger ε never gives shorter edges.
 #[derive(Clone, Copy, Debug)]
 pub struct AdaptiveSizing {
     /// Smallest target edge length, mm.
@@ -100,6 +101,11 @@ pub fn remesh(input: &TriMesh, opts: &RemeshOptions) -> Result<TriMesh, RemeshEr
     Ok(r.mesh.to_trimesh())
 }
 
+/// The most faces a remesh may make.
+const MAX_FACES: f64 = 5e7;
+/// The most iterations (and relaxation passes per iteration).
+pub const MAX_ITERATIONS: usize = 1000;
+
 fn check_settings(input: &TriMesh, opts: &RemeshOptions) -> Result<(), RemeshError> {
     let bad = |m: String| Err(RemeshError::BadSetting(m));
     let diag = input.bbox_diagonal();
@@ -114,26 +120,37 @@ fn check_settings(input: &TriMesh, opts: &RemeshOptions) -> Result<(), RemeshErr
             "edge length {h} mm is larger than the mesh (bounding-box diagonal {diag:.3} mm)"
         ));
     }
+    if opts.iterations > MAX_ITERATIONS || opts.relax_passes > MAX_ITERATIONS {
+        return bad(format!(
+            "{} iterations and {} relaxation passes: at most {MAX_ITERATIONS} each",
+            opts.iterations, opts.relax_passes
+        ));
+    }
+    if let Some(a) = opts.adaptive {
+        let sane = a.min_edge_mm > 0.0
+            && a.min_edge_mm <= h
+            && a.max_error_mm > 0.0
+            && a.max_error_mm.is_finite();
+        if !sane {
+            return bad(format!(
+                "adaptive sizing needs 0 < min edge ({} mm) <= edge ({h} mm) and a positive error ({} mm)",
+                a.min_edge_mm, a.max_error_mm
+            ));
+        }
+    }
     // An equilateral triangle of side h has area √3/4·h²; keep the output below 50 M faces.
     let min_h = opts.adaptive.map_or(h, |a| a.min_edge_mm.min(h));
-    let faces = input.area() / (3f64.sqrt() / 4.0 * min_h * min_h);
-    if faces > 5e7 {
+    let floor = (input.area() / (3f64.sqrt() / 4.0 * MAX_FACES)).sqrt();
+    if min_h < floor {
         return bad(format!(
-            "edge length {min_h} mm would give about {faces:.0} faces; use at least {:.4} mm",
-            min_h * (faces / 5e7).sqrt()
+            "edge length {min_h} mm would give more than {MAX_FACES:.0} faces on this mesh \
+             ({:.0} mm²); use at least {floor:.4} mm",
+            input.area()
         ));
     }
     if let Some(f) = opts.feature_angle_deg {
         if !(0.0..180.0).contains(&f) {
             return bad(format!("feature angle {f}°: it must lie in [0, 180)"));
-        }
-    }
-    if let Some(a) = opts.adaptive {
-        if !(a.min_edge_mm > 0.0 && a.min_edge_mm <= h && a.max_error_mm > 0.0) {
-            return bad(format!(
-                "adaptive sizing needs 0 < min edge ({} mm) <= edge ({h} mm) and a positive error ({} mm)",
-                a.min_edge_mm, a.max_error_mm
-            ));
         }
     }
     Ok(())
@@ -205,8 +222,9 @@ fn curvature_sizing(
     kappa
         .into_iter()
         .map(|k| {
-            let h = if k > 0.0 {
-                (6.0 * e / k - 3.0 * e * e).max(0.0).sqrt()
+            // Beyond ε = 1/κ (the error as large as the radius) any edge keeps the error.
+            let h = if k * e < 1.0 {
+                (6.0 * e / k - 3.0 * e * e).sqrt()
             } else {
                 h_max
             };

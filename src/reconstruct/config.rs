@@ -75,6 +75,49 @@ pub struct Settings {
     pub warmup_stages: usize,
 }
 
+/// The most stages of a schedule.
+pub const MAX_STAGES: usize = 100;
+/// The most iterations of a stage (and remesh iterations).
+pub const MAX_ITERATIONS: usize = 100_000;
+
+/// Checks the optimiser's settings.
+fn check_optimizer(o: &Optimizer) -> Result<(), String> {
+    let positive = |v: f64| v > 0.0 && v.is_finite();
+    let moment = |v: f64| (0.0..1.0).contains(&v);
+    match *o {
+        Optimizer::Sgd {
+            lr_start,
+            lr_end,
+            momentum,
+        } => {
+            if !(positive(lr_start) && positive(lr_end)) {
+                return Err("setting optimizer.sgd: lr_start and lr_end must be positive".into());
+            }
+            if !moment(momentum) {
+                return Err("setting optimizer.sgd: momentum must lie in [0, 1)".into());
+            }
+        }
+        Optimizer::LargeSteps {
+            lambda,
+            lr_edge,
+            beta1,
+            beta2,
+        } => {
+            if !(positive(lambda) && positive(lr_edge)) {
+                return Err(
+                    "setting optimizer.large_steps: lambda and lr_edge must be positive".into(),
+                );
+            }
+            if !(moment(beta1) && moment(beta2)) {
+                return Err(
+                    "setting optimizer.large_steps: beta1 and beta2 must lie in [0, 1)".into(),
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
 impl Settings {
     /// The named preset.
     pub fn preset(name: &str) -> Option<Self> {
@@ -181,9 +224,26 @@ impl Settings {
 
     /// Checks ranges; the message names the setting.
     pub fn check(&self) -> Result<(), String> {
+        self.check_schedule()?;
+        self.check_terms()?;
+        check_optimizer(&self.optimizer)
+    }
+
+    /// Stages, iterations, edge lengths, sampling.
+    fn check_schedule(&self) -> Result<(), String> {
         let bad = |k: &str, why: &str| Err(format!("setting {k}: {why}"));
-        if self.stages == 0 || self.iterations == 0 {
-            return bad("stages/iterations", "must be at least 1");
+        for (k, v, max) in [
+            ("stages", self.stages, MAX_STAGES),
+            ("iterations", self.iterations, MAX_ITERATIONS),
+            (
+                "remesh_iterations",
+                self.remesh_iterations.max(1),
+                MAX_ITERATIONS,
+            ),
+        ] {
+            if v == 0 || v > max {
+                return bad(k, &format!("must lie in 1..={max}"));
+            }
         }
         let drt_stages = Settings::preset("drt").expect("built-in").stages;
         if self.warmup_stages > drt_stages {
@@ -192,15 +252,40 @@ impl Settings {
                 &format!("DRT's schedule has {drt_stages} stages"),
             );
         }
-        if !(self.start_edge > 0.0 && self.final_edge > 0.0 && self.final_edge <= self.start_edge) {
-            return bad("start_edge/final_edge", "need 0 < final_edge ≤ start_edge");
+        if !(self.start_edge > 0.0 && self.final_edge > 0.0 && self.final_edge <= self.start_edge)
+            || self.start_edge > 1.0
+        {
+            return bad(
+                "start_edge/final_edge",
+                "need 0 < final_edge ≤ start_edge ≤ 1 (shares of the diagonal)",
+            );
         }
         if self.refraction_views == 0 || self.pixel_stride == 0 {
             return bad("refraction_views/pixel_stride", "must be at least 1");
         }
-        if self.max_refractions < 2 || self.max_refractions as usize > crate::trace::path::MAX_TRAIL
-        {
-            return bad("max_refractions", "must lie in 2..=8");
+        Ok(())
+    }
+
+    /// The terms: refraction count, robust loss, smoothness penalty, weights.
+    fn check_terms(&self) -> Result<(), String> {
+        let bad = |k: &str, why: &str| Err(format!("setting {k}: {why}"));
+        let max = crate::trace::path::MAX_TRAIL as u32;
+        if self.max_refractions < 2 || self.max_refractions > max || self.max_refractions % 2 == 1 {
+            return bad(
+                "max_refractions",
+                &format!("must be even and lie in 2..={max} (a ray enters and leaves)"),
+            );
+        }
+        match self.robust {
+            Robust::Huber(d) | Robust::Cauchy(d) if !(d > 0.0 && d.is_finite()) => {
+                return bad("robust", "the scale δ must be a positive number");
+            }
+            _ => {}
+        }
+        if let Smoothness::Tolerant { tau } = self.smoothness {
+            if !(tau > 0.0 && tau.is_finite()) {
+                return bad("smoothness", "τ must be a positive number");
+            }
         }
         for (k, w) in [
             ("weight_refraction", self.weight_refraction),

@@ -1,14 +1,15 @@
 //! `glasscan reconstruct`: from a decoded scan and an initial mesh (the visual hull) to the mesh
 //! the data supports. Coarse to fine: each stage remeshes to its edge length, then iterates
 //! loss + gradient + optimiser step with the three terms weighted. After every stage the mesh
-//! is checked (watertight, manifold, outward, finite), written, and a checkpoint saved, from
-//! which `--resume` continues with the same result as an uninterrupted run.
+//! is checked (watertight, manifold, outward, finite), written, and committed by a checkpoint
+//! ([`output`]), from which `--resume` continues with the same result as an uninterrupted run.
 
 pub mod config;
 pub mod optim;
+pub mod output;
 pub mod plot;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
@@ -19,7 +20,10 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use indicatif::ProgressBar;
+
 use crate::hull::silhouette::Silhouette;
+use crate::hull::{visual_hull, HullOptions};
 use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
 use crate::loss::smoothness::add_smoothness;
 use crate::loss::{silhouette, Accumulator, Drops};
@@ -30,9 +34,10 @@ use crate::mesh::TriMesh;
 use crate::trace::path::MeshSurface;
 use crate::trace::refract::IOR_AIR;
 use crate::trace::BuildMode;
-use crate::util::atomic::write_atomic;
 use config::Settings;
 use optim::Stepper;
+use output::commit;
+pub use output::{checkpoint_path, stage_path, Existing};
 
 type V3 = Vector3<f64>;
 
@@ -76,19 +81,19 @@ pub struct Checkpoint {
     pub settings: Settings,
     /// Bounding-box diagonal of the initial mesh (mm): the unit of the edge schedule.
     pub diagonal_mm: f64,
+    /// The file (in the output folder) of the mesh the run started from.
+    pub start_mesh: String,
     pub stages_done: usize,
     pub history: Vec<IterationRecord>,
     pub stages: Vec<StageReport>,
 }
 
-/// File names in the output folder.
-pub fn stage_path(out: &Path, s: usize) -> PathBuf {
-    out.join(format!("stage_{s:02}.ply"))
-}
-
-/// The checkpoint of a run in `out`.
-pub fn checkpoint_path(out: &Path) -> PathBuf {
-    out.join("checkpoint.json")
+/// Where a fresh run starts.
+pub enum Start<'a> {
+    /// The visual hull of the inputs' silhouettes, computed with these options (`hull.ply`).
+    Hull(HullOptions),
+    /// A given mesh, world frame, mm (`start.ply`).
+    Mesh(&'a TriMesh),
 }
 
 /// Progress callbacks of [`run`].
@@ -105,96 +110,133 @@ pub trait Progress {
     fn stage_end(&self, report: &StageReport);
 }
 
-/// Runs (or, with `resume`, continues) a reconstruction into `out` from `init` (not needed when
-/// resuming); `stop` set (Ctrl-C) ends it after the current stage's checkpoint. Returns the final
-/// checkpoint and mesh.
+/// What [`run`] hands back: the last committed checkpoint and its mesh.
+pub struct Finished {
+    pub checkpoint: Checkpoint,
+    pub mesh: TriMesh,
+    /// False when `stop` ended the run before its last stage (continue with `--resume`).
+    pub complete: bool,
+}
+
+/// Runs a reconstruction into `out`, or continues the committed run `existing` found there
+/// ([`output::prepare`] decides which, before any work). `stop` set (Ctrl-C, a time budget)
+/// ends the run after the current stage's commit.
 pub fn run(
     inputs: &Inputs,
-    init: Option<&TriMesh>,
+    start: Start,
     settings: &Settings,
     out: &Path,
-    resume: bool,
+    existing: Existing,
     progress: &dyn Progress,
     stop: &AtomicBool,
-) -> Result<(Checkpoint, TriMesh)> {
+) -> Result<Finished> {
     settings.check().map_err(anyhow::Error::msg)?;
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let (mut ck, mut mesh) = if checkpoint_path(out).is_file() {
-        if !resume {
-            bail!(
-                "{} holds a run already: continue it with --resume, or choose another output folder",
-                out.display()
-            );
-        }
-        let text = std::fs::read_to_string(checkpoint_path(out))?;
-        let ck: Checkpoint = serde_json::from_str(&text).with_context(|| {
-            format!(
-                "{}: not a glasscan checkpoint",
-                checkpoint_path(out).display()
-            )
-        })?;
-        if ck.settings != *settings {
-            bail!(
-                "--resume: the settings differ from the run in {} (its settings are in checkpoint.json)",
-                out.display()
-            );
-        }
-        let mesh = read_mesh(&stage_path(out, ck.stages_done - 1))?;
-        (ck, mesh)
-    } else {
-        let Some(init) = init else {
-            bail!("no initial mesh and no checkpoint in {}", out.display());
-        };
-        (
-            Checkpoint {
-                settings: settings.clone(),
-                diagonal_mm: init.bbox_diagonal(),
-                stages_done: 0,
-                history: Vec::new(),
-                stages: Vec::new(),
-            },
-            init.clone(),
-        )
+    let (mut ck, mut mesh) = match existing {
+        Existing::Run(ck) => continue_run(*ck, settings, out)?,
+        Existing::Nothing => begin_run(inputs, start, settings, out)?,
     };
     let stages = settings.total_stages();
     while ck.stages_done < stages {
-        let s = ck.stages_done;
-        let t0 = Instant::now();
-        let (phase, k) = settings.stage(s);
-        let edge_mm = phase.edge_mm(k, ck.diagonal_mm);
-        let opts = RemeshOptions {
-            iterations: phase.remesh_iterations,
-            ..RemeshOptions::uniform(edge_mm)
-        };
-        mesh = remesh(&mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
-        progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
-        let report = run_stage(
-            inputs,
-            &mut mesh,
-            &phase,
-            (s, k),
-            edge_mm,
-            &mut ck.history,
-            progress,
-        )?;
-        let report = StageReport {
-            seconds: t0.elapsed().as_secs_f64(),
-            ..report
-        };
-        write_mesh(&stage_path(out, s), &mesh)?;
-        progress.stage_end(&report);
-        ck.stages.push(report);
-        ck.stages_done += 1;
-        write_atomic(&checkpoint_path(out), |w| {
-            serde_json::to_writer(&mut *w, &ck)?;
-            Ok(())
-        })
-        .with_context(|| format!("cannot write {}", checkpoint_path(out).display()))?;
-        if stop.load(Ordering::SeqCst) && ck.stages_done < stages {
-            bail!("stopped after stage {s} (checkpoint saved): continue with --resume",);
+        if stop.load(Ordering::SeqCst) {
+            return Ok(Finished {
+                checkpoint: ck,
+                mesh,
+                complete: false,
+            });
         }
+        mesh = run_next_stage(inputs, &mut ck, &mesh, progress)?;
+        write_mesh(&stage_path(out, ck.stages_done - 1), &mesh)?;
+        commit(out, &ck)?;
     }
+    Ok(Finished {
+        checkpoint: ck,
+        mesh,
+        complete: true,
+    })
+}
+
+/// The start mesh of a fresh run, written to `out` and committed as a checkpoint with no stage
+/// done.
+fn begin_run(
+    inputs: &Inputs,
+    start: Start,
+    settings: &Settings,
+    out: &Path,
+) -> Result<(Checkpoint, TriMesh)> {
+    let (mesh, name) = match start {
+        Start::Hull(o) => {
+            let (hull, _) = visual_hull(&inputs.silhouettes, &o, &ProgressBar::hidden())?;
+            (hull, "hull.ply")
+        }
+        Start::Mesh(m) => (m.clone(), "start.ply"),
+    };
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    write_mesh(&out.join(name), &mesh)?;
+    let ck = Checkpoint {
+        settings: settings.clone(),
+        diagonal_mm: mesh.bbox_diagonal(),
+        start_mesh: name.into(),
+        stages_done: 0,
+        history: Vec::new(),
+        stages: Vec::new(),
+    };
+    commit(out, &ck)?;
     Ok((ck, mesh))
+}
+
+/// The committed state of the run in `out`, checked against `settings`.
+fn continue_run(ck: Checkpoint, settings: &Settings, out: &Path) -> Result<(Checkpoint, TriMesh)> {
+    if ck.settings != *settings {
+        bail!(
+            "--resume: the settings differ from the run in {} (its settings are in checkpoint.json)",
+            out.display()
+        );
+    }
+    let path = match ck.stages_done {
+        0 => out.join(&ck.start_mesh),
+        n => stage_path(out, n - 1),
+    };
+    let mesh = read_mesh(&path).context(
+        "--resume: the mesh the checkpoint names is unreadable; start over with --force",
+    )?;
+    Ok((ck, mesh))
+}
+
+/// Remeshes `mesh` to the next stage's edge length and runs that stage; records it in `ck`.
+fn run_next_stage(
+    inputs: &Inputs,
+    ck: &mut Checkpoint,
+    mesh: &TriMesh,
+    progress: &dyn Progress,
+) -> Result<TriMesh> {
+    let s = ck.stages_done;
+    let t0 = Instant::now();
+    let (phase, k) = ck.settings.stage(s);
+    let edge_mm = phase.edge_mm(k, ck.diagonal_mm);
+    let opts = RemeshOptions {
+        iterations: phase.remesh_iterations,
+        ..RemeshOptions::uniform(edge_mm)
+    };
+    let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
+    let stages = ck.settings.total_stages();
+    progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
+    let report = run_stage(
+        inputs,
+        &mut mesh,
+        &phase,
+        (s, k),
+        edge_mm,
+        &mut ck.history,
+        progress,
+    )?;
+    let report = StageReport {
+        seconds: t0.elapsed().as_secs_f64(),
+        ..report
+    };
+    progress.stage_end(&report);
+    ck.stages.push(report);
+    ck.stages_done += 1;
+    Ok(mesh)
 }
 
 /// The iterations of stage `s` of the run, stage `k` of `settings`' schedule, on `mesh` (moved in

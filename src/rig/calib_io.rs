@@ -23,6 +23,7 @@ use opencv::core::{
 
 use super::{Camera, Screen};
 use crate::util::atomic::write_atomic;
+use crate::util::fixed::MAX_SIDE_PX;
 
 /// A calibration file that cannot be read or written, or whose content is inconsistent.
 #[derive(Debug, thiserror::Error)]
@@ -54,7 +55,22 @@ impl<'a> Reader<'a> {
         if !path.is_file() {
             return Err(err(path, "no such file"));
         }
-        let fs = FileStorage::new(path, opencv::core::FileStorage_READ, "").map_err(cv(path))?;
+        // OpenCV asserts on an empty or foreign file: look at the first bytes first.
+        let head = read_head(path).map_err(|e| err(path, format!("cannot read it: {e}")))?;
+        if !head.starts_with(b"%YAML") {
+            return Err(err(
+                path,
+                "not an OpenCV FileStorage YAML file: it must start with %YAML:1.0 (see the \
+                 calibration files in the README)",
+            ));
+        }
+        let fs = FileStorage::new(path, opencv::core::FileStorage_READ, "").map_err(|_| {
+            err(
+                path,
+                "its YAML cannot be parsed (check indentation, colons and the !!opencv-matrix \
+                 blocks against the README)",
+            )
+        })?;
         if !fs.is_opened().map_err(cv(path))? {
             return Err(err(path, "not an OpenCV FileStorage file"));
         }
@@ -63,14 +79,18 @@ impl<'a> Reader<'a> {
 
     fn node(&self, key: &str) -> Result<opencv::core::FileNode, CalibError> {
         let n = self.fs.get(key).map_err(cv(self.path))?;
-        if n.empty().map_err(cv(self.path))? {
+        if n.empty().map_err(cv(self.path))? || n.is_none().map_err(cv(self.path))? {
             return Err(err(self.path, format!("missing key '{key}'")));
         }
         Ok(n)
     }
 
     fn real(&self, key: &str) -> Result<f64, CalibError> {
-        let v = self.node(key)?.real().map_err(cv(self.path))?;
+        let n = self.node(key)?;
+        if !(n.is_real().map_err(cv(self.path))? || n.is_int().map_err(cv(self.path))?) {
+            return Err(err(self.path, format!("'{key}' must be a number")));
+        }
+        let v = n.real().map_err(cv(self.path))?;
         if !v.is_finite() {
             return Err(err(self.path, format!("'{key}' is not a finite number")));
         }
@@ -88,16 +108,29 @@ impl<'a> Reader<'a> {
         Ok(v as u32)
     }
 
+    /// An image or monitor side in pixels: a whole number from 1 to [`MAX_SIDE_PX`].
+    fn side(&self, key: &str) -> Result<u32, CalibError> {
+        let v = self.positive_int(key)?;
+        if v > MAX_SIDE_PX {
+            return Err(err(
+                self.path,
+                format!("'{key}' = {v}: at most {MAX_SIDE_PX} pixels"),
+            ));
+        }
+        Ok(v)
+    }
+
     /// A matrix with `rows` × `cols` entries (in either orientation for vectors), row-major.
     fn matrix(&self, key: &str, sizes: &[(i32, i32)]) -> Result<Vec<f64>, CalibError> {
-        let m = self.node(key)?.mat().map_err(cv(self.path))?;
-        let (r, c) = (m.rows(), m.cols());
+        let node = self.node(key)?;
+        let (r, c) = self.matrix_shape(key, &node)?;
         if !sizes.contains(&(r, c)) {
             return Err(err(
                 self.path,
                 format!("'{key}' is {r}×{c}, expected one of {sizes:?}"),
             ));
         }
+        let m = node.mat().map_err(cv(self.path))?;
         let mut f = Mat::default();
         m.convert_to(&mut f, opencv::core::CV_64F, 1.0, 0.0)
             .map_err(cv(self.path))?;
@@ -107,6 +140,66 @@ impl<'a> Reader<'a> {
         }
         Ok(v)
     }
+
+    /// Rows and columns of an `!!opencv-matrix` node, checked against its `dt` and `data`
+    /// before OpenCV reads it (OpenCV asserts on a mismatch).
+    fn matrix_shape(
+        &self,
+        key: &str,
+        node: &opencv::core::FileNode,
+    ) -> Result<(i32, i32), CalibError> {
+        let cv = cv(self.path);
+        let form = || {
+            err(
+                self.path,
+                format!(
+                    "'{key}' must be an !!opencv-matrix with rows, cols, dt: d and data (rows × \
+                     cols numbers)"
+                ),
+            )
+        };
+        if !node.is_map().map_err(&cv)? {
+            return Err(form());
+        }
+        let int = |k: &str| -> Result<i32, CalibError> {
+            let n = node.get(k).map_err(&cv)?;
+            if !n.is_int().map_err(&cv)? {
+                return Err(form());
+            }
+            n.to_i32().map_err(&cv)
+        };
+        let (r, c) = (int("rows")?, int("cols")?);
+        let dt = node.get("dt").map_err(&cv)?;
+        let data = node.get("data").map_err(&cv)?;
+        let dt_ok = dt.is_string().map_err(&cv)? && !dt.to_string().map_err(&cv)?.is_empty();
+        let numbers = data.is_seq().map_err(&cv)?
+            && (0..data.size().map_err(&cv)?).all(|i| {
+                data.at(i as i32)
+                    .and_then(|e| Ok(e.is_real()? || e.is_int()?))
+                    .unwrap_or(false)
+            });
+        if r < 1 || c < 1 || !dt_ok || !numbers {
+            return Err(form());
+        }
+        if data.size().map_err(&cv)? != (r as usize) * (c as usize) {
+            return Err(err(
+                self.path,
+                format!(
+                    "'{key}' declares {r}×{c} but its data holds {} number(s)",
+                    data.size().map_err(&cv)?
+                ),
+            ));
+        }
+        Ok((r, c))
+    }
+}
+
+/// The first bytes of a file (up to 16).
+fn read_head(path: &Path) -> std::io::Result<Vec<u8>> {
+    use std::io::Read;
+    let mut head = Vec::with_capacity(16);
+    std::fs::File::open(path)?.take(16).read_to_end(&mut head)?;
+    Ok(head)
 }
 
 /// An OpenCV file being written in memory, then stored atomically.
@@ -147,10 +240,7 @@ impl<'a> Writer<'a> {
 /// Reads a camera file (OpenCV calibration sample keys).
 pub fn read_camera(path: &Path) -> Result<Camera, CalibError> {
     let r = Reader::open(path)?;
-    let (width, height) = (
-        r.positive_int("image_width")?,
-        r.positive_int("image_height")?,
-    );
+    let (width, height) = (r.side("image_width")?, r.side("image_height")?);
     let k = r.matrix("camera_matrix", &[(3, 3)])?;
     let d = r.matrix("distortion_coefficients", &[(4, 1), (1, 4), (5, 1), (1, 5)])?;
     if k[1] != 0.0 || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
@@ -246,10 +336,7 @@ pub fn write_camera(
 /// Reads a screen file.
 pub fn read_screen(path: &Path) -> Result<Screen, CalibError> {
     let r = Reader::open(path)?;
-    let (width_px, height_px) = (
-        r.positive_int("screen_width")?,
-        r.positive_int("screen_height")?,
-    );
+    let (width_px, height_px) = (r.side("screen_width")?, r.side("screen_height")?);
     let pitch_mm = r.real("pitch_mm")?;
     if pitch_mm <= 0.0 {
         return Err(err(

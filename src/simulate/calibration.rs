@@ -44,8 +44,8 @@ struct Setup {
 }
 
 /// Renders the calibration sets of `scan` (its camera, turntable and background) into
-/// `scan.dir/calibration`.
-pub fn write_calibration_images(scan: &Scan, o: &SimulateOptions) -> Result<()> {
+/// `scan.dir/calibration`; the commands in `setup.json` name the scan's final folder `out`.
+pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) -> Result<()> {
     let cam = &scan.camera;
     let d = o.camera_distance_mm;
     // Boards whose width with margins (12 squares) is a share of the image width at the axis
@@ -125,7 +125,7 @@ pub fn write_calibration_images(scan: &Scan, o: &SimulateOptions) -> Result<()> 
     )?;
 
     let board_arg = format!("{}x{}", board.cols, board.rows);
-    let scan_dir = scan.dir.display();
+    let scan_dir = out.display();
     let angles: Vec<String> = TURNTABLE_ANGLES.iter().map(|a| a.to_string()).collect();
     let setup = Setup {
         board: board_arg.clone(),

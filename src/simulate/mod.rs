@@ -27,7 +27,8 @@ use crate::rig::{Camera, Screen, Turntable};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::trace::path::{MeshSurface, NormalModel, PathSettings};
 use crate::trace::refract::IOR_AIR;
-use crate::util::fixed::{FixedPoint, NONE};
+use crate::util::fixed::{FixedPoint, MAX_SIDE_PX, NONE};
+use crate::util::folder::{StagedFolder, FORCE_HINT};
 use crate::util::image::{write_pixels, write_png};
 use crate::util::median;
 use render::{shade, shade_phase, trace_view, Outcome, Sample, ViewSetup};
@@ -68,6 +69,8 @@ pub struct SimulateOptions {
     pub distortion: [f64; 5],
     /// Also render calibration image sets (see [`calibration`]) and the background capture.
     pub calibration_images: bool,
+    /// Replace a non-empty output folder (whole, once the new scan is written).
+    pub force: bool,
 }
 
 impl Default for SimulateOptions {
@@ -94,6 +97,7 @@ impl Default for SimulateOptions {
             phase_shift: None,
             distortion: [0.0; 5],
             calibration_images: false,
+            force: false,
         }
     }
 }
@@ -121,14 +125,30 @@ pub struct SimulateReport {
 }
 
 /// Places `mesh` (centred on the turntable axis) in a DRT-like rig and writes a scan to `out`.
+/// The scan is written into a temporary sibling that replaces `out` whole on success (so no
+/// other scan's file is ever left in it); a non-empty `out` is refused unless `o.force`.
 pub fn simulate(
     mesh: &TriMesh,
+    out: &Path,
+    o: &SimulateOptions,
+    progress: impl FnMut(usize),
+) -> Result<SimulateReport> {
+    check_options(o)?;
+    let staged = StagedFolder::new(out, o.force, FORCE_HINT)?;
+    let report = simulate_into(mesh, staged.path(), out, o, progress)?;
+    staged.commit()?;
+    Ok(report)
+}
+
+/// [`simulate`]'s work: writes the scan into `dir`, which will become `out`.
+fn simulate_into(
+    mesh: &TriMesh,
+    dir: &Path,
     out: &Path,
     o: &SimulateOptions,
     mut progress: impl FnMut(usize),
 ) -> Result<SimulateReport> {
     let t0 = Instant::now();
-    check_options(o)?;
     ensure_valid(mesh).context("the mesh to simulate is not a valid closed surface")?;
     let (lo, hi) = mesh.bbox().expect("a valid mesh has vertices");
     let mut placed = mesh.clone();
@@ -186,7 +206,7 @@ pub fn simulate(
         angles_deg: Turntable::even_angles(o.views),
     };
     let scan = Scan {
-        dir: out.to_path_buf(),
+        dir: dir.to_path_buf(),
         config: ScanConfig {
             ior: o.ior,
             calibration: CalibrationFiles {
@@ -210,16 +230,16 @@ pub fn simulate(
         turntable,
         poses: None,
     };
-    let truth = out.join("truth");
+    let truth = dir.join("truth");
     let mut dirs = vec![truth.clone()];
     if o.decoded_only {
-        dirs.push(out.join("decoded"));
+        dirs.push(dir.join("decoded"));
     }
     for dir in &dirs {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     }
     scan.save()?;
-    write_mesh(&out.join("ground_truth.ply"), &placed)?;
+    write_mesh(&dir.join("ground_truth.ply"), &placed)?;
 
     let surface = MeshSurface::new(&placed, o.normals)?;
     let code = scan.graycode();
@@ -259,7 +279,7 @@ pub fn simulate(
         write_captures(&scan.background_dir(), &background, o, &code, o.seed ^ 0xb6)?;
     }
     if o.calibration_images {
-        calibration::write_calibration_images(&scan, o)?;
+        calibration::write_calibration_images(&scan, out, o)?;
     }
     for (k, pose) in poses.iter().enumerate() {
         let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
@@ -267,7 +287,7 @@ pub fn simulate(
         write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
         if o.decoded_only {
             decoded.push(write_exact_decoded(
-                &out.join("decoded"),
+                &dir.join("decoded"),
                 k,
                 &samples,
                 &scan.camera,
@@ -286,7 +306,7 @@ pub fn simulate(
         progress(k);
     }
     if o.decoded_only {
-        crate::decode::form::write_summary(&out.join("decoded"), &fixed, &decoded)?;
+        crate::decode::form::write_summary(&dir.join("decoded"), &fixed, &decoded)?;
     }
     let mut report = tally.report(o.views);
     report.direct_footprint_px = direct_footprint_px;
@@ -299,7 +319,34 @@ pub fn simulate(
     Ok(report)
 }
 
+/// The most turntable views a simulated scan may have (0.1° steps).
+pub const MAX_VIEWS: usize = 3600;
+/// The most area samples per pixel.
+pub const MAX_SPP: u32 = 1024;
+
 fn check_options(o: &SimulateOptions) -> Result<()> {
+    use crate::util::budget;
+    if o.views > MAX_VIEWS || o.spp > MAX_SPP {
+        bail!(
+            "{} views and {} samples per pixel: at most {MAX_VIEWS} views and {MAX_SPP} samples",
+            o.views,
+            o.spp
+        );
+    }
+    if o.width.max(o.height) > MAX_SIDE_PX || o.screen_width.max(o.screen_height) > MAX_SIDE_PX {
+        bail!("image and monitor sides must be at most {MAX_SIDE_PX} pixels");
+    }
+    // One view's samples are held at a time, plus its images.
+    let pixels = u128::from(o.width) * u128::from(o.height);
+    budget::check(
+        &format!(
+            "{}×{} pixels at {} samples per pixel",
+            o.width, o.height, o.spp
+        ),
+        pixels * u128::from(o.spp),
+        std::mem::size_of::<Sample>() as u128 + 16,
+        "use a smaller --size or --spp",
+    )?;
     if o.width == 0 || o.height == 0 {
         bail!(
             "image size {}x{}: both must be at least 1 pixel",

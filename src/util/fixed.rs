@@ -4,6 +4,10 @@
 /// The "no value" marker.
 pub const NONE: u16 = u16::MAX;
 
+/// The largest image or monitor side glasscan accepts, pixels (a 16K monitor is 15,360 wide;
+/// up to here the fixed-point monitor coordinates keep at least 3 steps per pixel).
+pub const MAX_SIDE_PX: u32 = 16_384;
+
 /// A fixed-point scale s.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FixedPoint {

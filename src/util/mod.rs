@@ -1,8 +1,11 @@
-//! Small helpers shared by every stage: atomic file and image output, a median.
+//! Small helpers shared by every stage: atomic file, folder and image output, a median.
 
 pub mod atomic;
+pub mod budget;
 pub mod fixed;
+pub mod folder;
 pub mod image;
+pub mod paths;
 
 /// The median of `v` (the upper one for an even count); NaN for an empty list.
 pub fn median(mut v: Vec<f64>) -> f64 {

@@ -1,0 +1,173 @@
+//! What several subcommands share: argument parsers that range-check at parse time, view lists,
+//! and progress bars.
+
+use anyhow::{bail, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::util::fixed::MAX_SIDE_PX;
+
+/// Parses "0-9,12" (or "all", or nothing) into sorted view indices below `count`.
+pub fn parse_views(spec: Option<&str>, count: usize) -> Result<Vec<usize>> {
+    let Some(spec) = spec.filter(|s| *s != "all") else {
+        return Ok((0..count).collect());
+    };
+    let mut views = Vec::new();
+    for part in spec.split(',') {
+        let (a, b) = part.split_once('-').unwrap_or((part, part));
+        let (a, b): (usize, usize) = match (a.trim().parse(), b.trim().parse()) {
+            (Ok(a), Ok(b)) if a <= b => (a, b),
+            _ => bail!("--views '{spec}': '{part}' is not an index or a range like 3-7"),
+        };
+        if b >= count {
+            bail!(
+                "--views '{spec}': the scan has views 0-{}",
+                count.saturating_sub(1)
+            );
+        }
+        views.extend(a..=b);
+    }
+    views.sort_unstable();
+    views.dedup();
+    Ok(views)
+}
+
+/// Parses WIDTHxHEIGHT, both from 1 to [`MAX_SIDE_PX`].
+pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("'{s}': expected WIDTHxHEIGHT, e.g. 1280x960"))?;
+    let p = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("'{s}': '{v}' is not a whole number"))
+    };
+    let (w, h) = (p(w)?, p(h)?);
+    if w == 0 || h == 0 || w > MAX_SIDE_PX || h > MAX_SIDE_PX {
+        return Err(format!(
+            "'{s}': both sizes must lie between 1 and {MAX_SIDE_PX} pixels"
+        ));
+    }
+    Ok((w, h))
+}
+
+/// A finite number parsed from `s`.
+fn finite(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        _ => Err(format!("'{s}' is not a finite number")),
+    }
+}
+
+/// A positive, finite number.
+pub fn positive(s: &str) -> Result<f64, String> {
+    let v = finite(s)?;
+    if v > 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("{v}: it must be positive"))
+    }
+}
+
+/// A finite number ≥ 0.
+pub fn non_negative(s: &str) -> Result<f64, String> {
+    let v = finite(s)?;
+    if v >= 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("{v}: it must not be negative"))
+    }
+}
+
+/// A share in [0, 1].
+pub fn share(s: &str) -> Result<f64, String> {
+    let v = finite(s)?;
+    if (0.0..=1.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("{v}: it must lie in [0, 1]"))
+    }
+}
+
+/// A share in (0, 1].
+pub fn positive_share(s: &str) -> Result<f64, String> {
+    let v = finite(s)?;
+    if v > 0.0 && v <= 1.0 {
+        Ok(v)
+    } else {
+        Err(format!("{v}: it must lie in (0, 1]"))
+    }
+}
+
+/// A solid object's refractive index: above 1 (air) and at most 4 (beyond any clear solid).
+pub fn ior(s: &str) -> Result<f64, String> {
+    let v = finite(s)?;
+    if v > 1.0 && v <= 4.0 {
+        Ok(v)
+    } else {
+        Err(format!(
+            "{v}: a solid transparent object's refractive index lies in (1, 4] (glass ≈ 1.5)"
+        ))
+    }
+}
+
+/// A share in [0, 1] as f32 (decoder thresholds).
+pub fn share_f32(s: &str) -> Result<f32, String> {
+    share(s).map(|v| v as f32)
+}
+
+/// A positive, finite number as f32.
+pub fn positive_f32(s: &str) -> Result<f32, String> {
+    positive(s).map(|v| v as f32)
+}
+
+/// A threshold that is either chosen by glasscan (`auto`) or a share in (0, 1).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AutoShare(pub Option<f32>);
+
+/// Parses `auto` (any case) or a share in (0, 1).
+pub fn auto_or_open_share(s: &str) -> Result<AutoShare, String> {
+    if s.trim().eq_ignore_ascii_case("auto") {
+        return Ok(AutoShare(None));
+    }
+    let v = finite(s).map_err(|_| format!("'{s}': expected auto or a number in (0, 1)"))?;
+    if v > 0.0 && v < 1.0 {
+        Ok(AutoShare(Some(v as f32)))
+    } else {
+        Err(format!("{v}: it must lie in (0, 1), or be auto"))
+    }
+}
+
+/// A progress bar of `len` steps whose line starts with `what`.
+pub fn bar(what: &str, len: usize) -> ProgressBar {
+    ProgressBar::new(len as u64).with_style(
+        ProgressStyle::with_template(&format!(
+            "{what} {{msg}} [{{bar:40}}] {{pos}}/{{len}} ({{eta}})"
+        ))
+        .expect("a valid template"),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn view_lists() {
+        assert_eq!(parse_views(None, 3).unwrap(), vec![0, 1, 2]);
+        assert_eq!(parse_views(Some("2,0-1,1"), 3).unwrap(), vec![0, 1, 2]);
+        assert!(parse_views(Some("3"), 3).is_err());
+        assert!(parse_views(Some("2-1"), 3).is_err());
+        assert!(parse_views(Some("0"), 0).is_err());
+    }
+
+    #[test]
+    fn numbers_are_range_checked() {
+        assert!(positive("nan").is_err() && positive("0").is_err() && positive("1e-3").is_ok());
+        assert!(non_negative("-0.5").is_err() && non_negative("0").is_ok());
+        assert!(share("2").is_err() && share("1").is_ok() && share("inf").is_err());
+        assert_eq!(auto_or_open_share("AUTO").unwrap(), AutoShare(None));
+        assert!(auto_or_open_share("-0.5").is_err() && auto_or_open_share("1").is_err());
+        assert_eq!(parse_size("640x480").unwrap(), (640, 480));
+        assert!(parse_size("100000x100000").is_err() && parse_size("0x4").is_err());
+    }
+}

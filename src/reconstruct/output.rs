@@ -1,0 +1,200 @@
+//! The output folder of a reconstruction: what may be in it before a run, and the checkpoint
+//! that is the single commit point of every stage.
+//!
+//! A run first writes its start mesh, then commits `checkpoint.json` with no stage done; after
+//! each stage it writes `stage_NN.ply` and then commits the checkpoint that names it. Every file
+//! is written atomically (temporary file + rename), and only what the checkpoint names counts: a
+//! run killed at any instant leaves either the previous or the new stage committed, and a
+//! `stage_NN.ply` written after the last commit is written again, identically, on resume.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+
+use super::Checkpoint;
+use crate::util::atomic::write_atomic;
+
+/// The checkpoint of a run in `out`.
+pub fn checkpoint_path(out: &Path) -> PathBuf {
+    out.join("checkpoint.json")
+}
+
+/// The mesh of stage `s` of a run in `out`.
+pub fn stage_path(out: &Path, s: usize) -> PathBuf {
+    out.join(format!("stage_{s:02}.ply"))
+}
+
+/// What an output folder held when a run was asked to write into it.
+#[derive(Debug)]
+pub enum Existing {
+    /// Nothing (or no folder yet): the run starts from its start mesh.
+    Nothing,
+    /// A committed run, to be continued (`--resume`).
+    Run(Box<Checkpoint>),
+}
+
+/// True for a file name that glasscan's reconstruction writes (or a temporary file of it).
+fn is_glasscan_file(name: &str) -> bool {
+    let stage = name
+        .strip_prefix("stage_")
+        .and_then(|s| s.strip_suffix(".ply"))
+        .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()));
+    let temporary = name.starts_with(".glasscan-") && name.ends_with(".tmp");
+    stage
+        || temporary
+        || [
+            "checkpoint.json",
+            "start.ply",
+            "hull.ply",
+            "result.ply",
+            "report.json",
+            "loss.png",
+            "loss.svg",
+        ]
+        .contains(&name)
+}
+
+/// The names in `out` (sorted), or none when it does not exist; an error when it is a file.
+fn folder_entries(out: &Path) -> Result<Vec<String>> {
+    if !out.exists() {
+        return Ok(Vec::new());
+    }
+    if !out.is_dir() {
+        bail!(
+            "{} is a file: the output of reconstruct is a folder; choose a new folder name",
+            out.display()
+        );
+    }
+    let mut names = Vec::new();
+    for entry in std::fs::read_dir(out).with_context(|| format!("cannot read {}", out.display()))? {
+        let entry = entry.with_context(|| format!("cannot read {}", out.display()))?;
+        names.push(entry.file_name().to_string_lossy().into_owned());
+    }
+    names.sort();
+    Ok(names)
+}
+
+/// Reads the committed checkpoint of `out`, if there is a readable one.
+pub fn read_checkpoint(out: &Path) -> Option<Checkpoint> {
+    let text = std::fs::read_to_string(checkpoint_path(out)).ok()?;
+    serde_json::from_str(&text).ok()
+}
+
+/// Commits `ck` as the state of the run in `out` (atomically).
+pub fn commit(out: &Path, ck: &Checkpoint) -> Result<()> {
+    write_atomic(&checkpoint_path(out), |w| {
+        serde_json::to_writer(&mut *w, ck)?;
+        Ok(())
+    })
+    .with_context(|| format!("cannot write {}", checkpoint_path(out).display()))
+}
+
+/// Decides what a run may do with `out` before any work is done.
+///
+/// - A new or empty folder: the run starts.
+/// - A folder with a committed run: continued with `resume`, cleared and started anew with
+///   `force`, refused otherwise.
+/// - A folder holding only glasscan's files but no committed checkpoint (a run killed before its
+///   first commit): started anew with `resume` or `force` (the files are leftovers), refused
+///   otherwise.
+/// - A folder holding other files: always refused (`force` never deletes what glasscan did not
+///   write).
+pub fn prepare(out: &Path, resume: bool, force: bool) -> Result<Existing> {
+    let names = folder_entries(out)?;
+    if names.is_empty() {
+        return Ok(Existing::Nothing);
+    }
+    if let Some(other) = names.iter().find(|n| !is_glasscan_file(n)) {
+        bail!(
+            "{} holds files that are not a glasscan reconstruction (e.g. {other}): choose a new or \
+             empty output folder",
+            out.display()
+        );
+    }
+    let committed = read_checkpoint(out);
+    match committed {
+        Some(ck) if resume && !force => Ok(Existing::Run(Box::new(ck))),
+        Some(ck) if !force => bail!(
+            "{} holds a run ({} of {} stages done): continue it with --resume, start it over with \
+             --force, or choose another output folder",
+            out.display(),
+            ck.stages_done,
+            ck.settings.total_stages()
+        ),
+        None if !(resume || force) => bail!(
+            "{} holds the files of a run that stopped before its first checkpoint: start it over \
+             with --resume or --force, or choose another output folder",
+            out.display()
+        ),
+        _ => {
+            clear(out, &names)?;
+            Ok(Existing::Nothing)
+        }
+    }
+}
+
+/// Removes glasscan's files `names` from `out`.
+fn clear(out: &Path, names: &[String]) -> Result<()> {
+    for n in names {
+        let p = out.join(n);
+        std::fs::remove_file(&p).with_context(|| format!("cannot remove {}", p.display()))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn glasscan_files_are_recognised_by_name() {
+        for n in [
+            "stage_00.ply",
+            "stage_123.ply",
+            "checkpoint.json",
+            ".glasscan-x1.tmp",
+        ] {
+            assert!(is_glasscan_file(n), "{n}");
+        }
+        for n in [
+            "stage_.ply",
+            "stage_0a.ply",
+            "notes.txt",
+            "scan.toml",
+            "stage_01.obj",
+        ] {
+            assert!(!is_glasscan_file(n), "{n}");
+        }
+    }
+
+    #[test]
+    fn a_folder_with_foreign_files_is_refused_even_with_force() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("thesis.tex"), "x").unwrap();
+        let e = prepare(dir.path(), true, true).unwrap_err().to_string();
+        assert!(e.contains("thesis.tex"), "{e}");
+        assert!(dir.path().join("thesis.tex").is_file());
+    }
+
+    #[test]
+    fn leftovers_without_a_checkpoint_need_resume_or_force() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("hull.ply"), "x").unwrap();
+        let e = prepare(dir.path(), false, false).unwrap_err().to_string();
+        assert!(e.contains("before its first checkpoint"), "{e}");
+        assert!(matches!(
+            prepare(dir.path(), true, false).unwrap(),
+            Existing::Nothing
+        ));
+        assert!(!dir.path().join("hull.ply").exists());
+    }
+
+    #[test]
+    fn a_file_is_not_an_output_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("out");
+        std::fs::write(&f, "x").unwrap();
+        let e = prepare(&f, false, false).unwrap_err().to_string();
+        assert!(e.contains("is a file"), "{e}");
+    }
+}
