@@ -1,5 +1,5 @@
 //! Gray-code patterns in exactly the order of OpenCV's `structured_light::GrayCodePattern`
-//! (DESIGN §2): for each column bit, most significant first, the pattern then its inverse; then
+//! (docs/architecture.md §2): for each column bit, most significant first, the pattern then its inverse; then
 //! the same for the row bits; then the white and the black image of
 //! `getImagesForShadowMasks()`. A pattern pixel is white where the bit of the Gray code
 //! `g = c ^ (c >> 1)` of its column (or row) is set.

@@ -1,5 +1,5 @@
 //! The hand-written gradients against central finite differences (f64), on random
-//! configurations and at the extremes DESIGN §5 lists; exclusion of non-differentiable rays; and
+//! configurations and at the extremes docs/architecture.md §5 lists; exclusion of non-differentiable rays; and
 //! the consistency of the refraction loss with the simulator on the true shape.
 
 #![allow(clippy::needless_range_loop)]

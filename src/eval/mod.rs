@@ -1,4 +1,4 @@
-//! Reconstruction metrics against a reference mesh (DESIGN §9).
+//! Reconstruction metrics against a reference mesh (docs/architecture.md §9).
 //!
 //! Both meshes are sampled uniformly by area (seeded); each sample's exact distance to the other
 //! surface (closest point on its triangles, f64, pruned by Embree's BVH) gives

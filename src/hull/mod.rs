@@ -1,4 +1,4 @@
-//! `glasscan hull`: the visual hull of the decoded silhouettes (DESIGN §8) — the starting shape of
+//! `glasscan hull`: the visual hull of the decoded silhouettes (docs/architecture.md §8) — the starting shape of
 //! the optimisation. Space carving ([`carve`]) into a block-sparse field, marching cubes
 //! ([`crate::mesh::marching_cubes`]), optionally an isotropic remesh.
 

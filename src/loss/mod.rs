@@ -1,5 +1,5 @@
 //! The losses of the optimisation and their exact gradients with respect to every vertex
-//! position (DESIGN §4–5), written by hand: [`refraction`] (decoded monitor points),
+//! position (docs/architecture.md §4–5), written by hand: [`refraction`] (decoded monitor points),
 //! [`silhouette`] (contour edges against the masks) and [`smoothness`] (dihedral angles).
 //!
 //! Each chunk of rays or edges is differentiated on one thread into [`Contributions`], which are

@@ -1,4 +1,4 @@
-//! The refraction term (DESIGN §4): for each object pixel with a decoded monitor point Q, the
+//! The refraction term (docs/architecture.md §4): for each object pixel with a decoded monitor point Q, the
 //! modelled path through the current mesh should reach Q.
 //!
 //! Per view, Embree traces every pixel ray through the mesh in batches, recording the triangles

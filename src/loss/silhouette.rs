@@ -1,4 +1,4 @@
-//! The silhouette term, DRT's contour-edge formulation (DESIGN §4).
+//! The silhouette term, DRT's contour-edge formulation (docs/architecture.md §4).
 //!
 //! Per view: contour edges are mesh edges whose two faces face opposite ways from the camera
 //! centre. Both endpoints are projected (with the lens model); at the projected midpoint M two

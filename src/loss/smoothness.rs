@@ -1,4 +1,4 @@
-//! The smoothness term (DESIGN §4): a penalty ψ(cos θ) on every interior edge, θ the angle
+//! The smoothness term (docs/architecture.md §4): a penalty ψ(cos θ) on every interior edge, θ the angle
 //! between the normals of its two faces.
 
 use nalgebra::{Point3, Vector3};

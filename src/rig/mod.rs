@@ -1,4 +1,4 @@
-//! The physical rig: camera, monitor, turntable, and their calibration files (DESIGN §2).
+//! The physical rig: camera, monitor, turntable, and their calibration files (docs/architecture.md §2).
 
 pub mod calib_io;
 pub mod camera;

@@ -2,7 +2,7 @@
 //!
 //! Monitor frame: origin at the centre of pixel (0, 0), x along pixel columns, y along pixel
 //! rows (mm), z = x × y. A point of the monitor frame maps to the camera frame as `R·p + t`, so
-//! pixel (u, v) sits at `t + u·pitch·R[:,0] + v·pitch·R[:,1]` (DESIGN §2).
+//! pixel (u, v) sits at `t + u·pitch·R[:,0] + v·pitch·R[:,1]` (docs/architecture.md §2).
 
 use nalgebra::{Isometry3, Point2, Point3, Vector3};
 

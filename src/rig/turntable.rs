@@ -2,7 +2,7 @@
 //! which views were taken. It defines the world (object) frame and each view's world → camera
 //! transform.
 //!
-//! World frame (DESIGN §2): origin at the axis point, +y along the axis, +z towards the camera
+//! World frame (docs/architecture.md §2): origin at the axis point, +y along the axis, +z towards the camera
 //! (perpendicular to the axis), x = y × z. View k sees the object rotated by θk about +y:
 //! `p_cam = M · R_y(θk) · p_world`, with M the world → camera transform at θ = 0.
 

@@ -3,7 +3,7 @@
 //! Directions are unit vectors in any frame; the normal passed in faces the incident side
 //! (`d · n < 0`). The transmitted direction is `η d + (η cos θi − cos θt) n` with η = n_i / n_t,
 //! cos θi = −d·n and cos θt = √(1 − η² (1 − cos² θi)): the cosine of the *transmitted* angle
-//! (DRT's released code used √(1 − sin² θi) here, a bug worth 0.25 mm of accuracy; DESIGN §4).
+//! (DRT's released code used √(1 − sin² θi) here, a bug worth 0.25 mm of accuracy; docs/architecture.md §4).
 
 use nalgebra::Vector3;
 
