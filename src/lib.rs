@@ -4,6 +4,8 @@
 //! Units: millimetres in 3D, pixels in images. The binary (`src/main.rs`) is a thin CLI over
 //! [`cli`]; every stage lives in its own module.
 
+#![deny(unsafe_code)]
+
 pub mod bench;
 pub mod calibrate;
 pub mod cli;
@@ -15,6 +17,7 @@ pub mod loss;
 pub mod mesh;
 pub mod patterns;
 pub mod reconstruct;
+pub mod remesh;
 pub mod rig;
 pub mod scan;
 pub mod simulate;

@@ -1,5 +1,7 @@
 //! The `glasscan` binary: a thin shell over the library's CLI.
 
+#![deny(unsafe_code)]
+
 use std::process::ExitCode;
 
 fn main() -> ExitCode {

@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use glasscan::decode::form::{read_rays, DecodedScan};
+use glasscan::scan::decoded::{read_rays, DecodedScan};
 use glasscan::import::drt::import_drt;
 use glasscan::mesh::io::{read_mesh, write_mesh, write_mesh_as, MeshFormat};
 use glasscan::mesh::shapes::icosphere;

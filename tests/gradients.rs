@@ -4,7 +4,7 @@
 
 #![allow(clippy::needless_range_loop)]
 
-use glasscan::hull::silhouette::Silhouette;
+use glasscan::scan::silhouette::Silhouette;
 use glasscan::loss::refraction::{
     add_view, pixel_gradient, MeshState, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
 };

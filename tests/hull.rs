@@ -4,7 +4,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use glasscan::hull::silhouette::Silhouette;
+use glasscan::scan::silhouette::Silhouette;
 use glasscan::hull::{visual_hull, HullOptions};
 use glasscan::mesh::marching_cubes::{marching_cubes, FieldBlock, Grid};
 use glasscan::mesh::sample::sample_surface;

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::{Mutex, OnceLock};
 
-use glasscan::decode::form::DecodedScan;
+use glasscan::scan::decoded::DecodedScan;
 use glasscan::loss::refraction::ViewTargets;
 use glasscan::loss::targets::{scan_targets, TargetWeights};
 use glasscan::mesh::shapes::ellipsoid;

@@ -3,7 +3,7 @@
 
 use glasscan::eval::sampled_distances;
 use glasscan::mesh::halfedge::HalfEdgeMesh;
-use glasscan::mesh::remesh::{remesh, RemeshError, RemeshOptions};
+use glasscan::remesh::{remesh, RemeshError, RemeshOptions};
 use glasscan::mesh::shapes::{cuboid, ellipsoid, figurine, icosphere, perturb_radially, torus};
 use glasscan::mesh::stats::unique_edges;
 use glasscan::mesh::validate::validate;

@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::eval::sampled_distances;
 use crate::mesh::io::{read_mesh, write_mesh};
-use crate::mesh::remesh::{remesh, RemeshOptions};
+use crate::remesh::{remesh, RemeshOptions};
 use crate::mesh::stats::{quality, MeshQuality};
 use crate::mesh::TriMesh;
 use crate::trace::{BuildMode, Device, Scene};

@@ -149,7 +149,7 @@ fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
         views: a.views.clone(),
         scans: a.scans.clone(),
     };
-    let bars = super::reconstruct::Bars::new();
+    let bars = super::common::StageBars::new();
     let log = |s: &str| bars.bar.suspend(|| eprintln!("{s}"));
     let results = run_bench(&o, &bars, &log)?;
     bars.bar.finish_and_clear();

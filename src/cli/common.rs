@@ -4,6 +4,7 @@
 use anyhow::{bail, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::reconstruct::{IterationRecord, Progress, StageReport};
 use crate::util::fixed::MAX_SIDE_PX;
 
 /// Parses "0-9,12" (or "all", or nothing) into sorted view indices below `count`.
@@ -145,6 +146,64 @@ pub fn bar(what: &str, len: usize) -> ProgressBar {
         ))
         .expect("a valid template"),
     )
+}
+
+/// The progress of a reconstruction: a bar per stage (loss, ETA) and a line per finished stage.
+pub struct StageBars {
+    pub bar: ProgressBar,
+}
+
+impl StageBars {
+    pub fn new() -> Self {
+        Self {
+            bar: ProgressBar::new(0).with_style(
+                ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg} ({eta})")
+                    .expect("static template"),
+            ),
+        }
+    }
+}
+
+impl Progress for StageBars {
+    fn stage_start(
+        &self,
+        stage: usize,
+        stages: usize,
+        edge_mm: f64,
+        faces: usize,
+        iterations: usize,
+    ) {
+        self.bar.reset();
+        self.bar.set_length(iterations as u64);
+        self.bar.set_prefix(format!(
+            "stage {}/{stages} ({edge_mm:.2} mm, {faces} faces)",
+            stage + 1
+        ));
+    }
+    fn iteration(&self, r: &IterationRecord) {
+        self.bar.set_message(format!("loss {:.3e}", r.total));
+        self.bar.inc(1);
+    }
+    fn note(&self, text: &str) {
+        self.bar.suspend(|| eprintln!("{text}"));
+    }
+    fn stage_end(&self, r: &StageReport) {
+        self.bar.suspend(|| {
+            eprintln!(
+                "stage {:>2}: edge {:.2} mm, {} faces, {:.1} s, loss {:.3e} (refraction {:.3e}, silhouette {:.3e}, smoothness {:.3e}), rays used {}, dropped {}",
+                r.stage + 1,
+                r.edge_mm,
+                r.faces,
+                r.seconds,
+                r.last.total,
+                r.last.refraction,
+                r.last.silhouette,
+                r.last.smoothness,
+                r.refraction_rays_used,
+                r.refraction_drops.total()
+            )
+        });
+    }
 }
 
 #[cfg(test)]

@@ -2,23 +2,24 @@
 //! captures, decode it, carve the visual hull, reconstruct with the `fast` preset, and evaluate
 //! both against the truth.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use indicatif::ProgressBar;
 use nalgebra::Vector3;
 
-use super::reconstruct::Bars;
+use super::common::StageBars;
 use crate::decode::{decode_scan, DecodeOptions};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
-use crate::hull::{visual_hull, HullOptions};
-use crate::mesh::io::write_mesh;
+use crate::hull::HullOptions;
+use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::shapes::ellipsoid;
+use crate::mesh::TriMesh;
 use crate::reconstruct::config::Settings;
-use crate::reconstruct::{self, load_inputs, Existing, Start};
+use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
+use crate::reconstruct::{Existing, Start};
 use crate::scan::Scan;
 use crate::simulate::{simulate, SimulateOptions};
 use crate::util::folder::StagedFolder;
@@ -67,6 +68,49 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     .with_context(|| format!("cannot write into {}", out.display()))?;
 
     outln!("== 1. a built-in glass object: a three-lobed pebble with a dimple no silhouette shows, about 85 × 60 × 55 mm, IOR 1.4723");
+    let object = pebble();
+    write_mesh(&out.join("object.ply"), &object)?;
+
+    outln!("== 2. simulate a scan: 24 views, 640×480, 4 samples per pixel, Gray-code captures");
+    let t = Instant::now();
+    let scan_dir = out.join("scan");
+    let sim = SimulateOptions {
+        views: 24,
+        width: 640,
+        height: 480,
+        spp: 4,
+        seed: args.seed,
+        ..Default::default()
+    };
+    simulate(&object, &scan_dir, &sim, |_| ())?;
+    outln!("   {:.1} s", t.elapsed().as_secs_f64());
+
+    outln!("== 3. decode the captures");
+    let t = Instant::now();
+    let scan = Scan::open(&scan_dir)?;
+    let views: Vec<usize> = (0..sim.views).collect();
+    decode_scan(&scan, &views, &DecodeOptions::default(), |_| ())?;
+    outln!("   {:.1} s", t.elapsed().as_secs_f64());
+
+    outln!("== 4. reconstruct: visual hull (1 mm voxels), then the fast preset");
+    let t = Instant::now();
+    let rec = out.join("reconstruction");
+    let outcome = reconstruct(&scan, views, args.seed, &rec)?;
+    outln!("   {:.1} s", t.elapsed().as_secs_f64());
+
+    outln!("== 5. evaluate against the object as placed in the scan");
+    evaluate_hull_and_result(&scan_dir, &rec, &outcome, &out)?;
+    outln!(
+        "\ndemo done in {:.1} s; in {}: object.ply, scan/ (captures, decoded/), reconstruction/ (hull.ply, result.ply, stage meshes, loss.png, report.json), eval.json",
+        t0.elapsed().as_secs_f64(),
+        args.out.display()
+    );
+    staged.commit()
+}
+
+/// The built-in object: an ellipsoid with three smooth lobes around the vertical axis and a
+/// dimple in its front face (which no silhouette shows), mm.
+fn pebble() -> TriMesh {
     let mut object = ellipsoid(Vector3::new(40.0, 30.0, 25.0), 5);
     for p in &mut object.positions {
         // Smooth lobes around the vertical axis, fading towards the poles.
@@ -78,90 +122,40 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             p.z *= 1.0 - 0.3 * (-(p.x * p.x + p.y * p.y) / 225.0).exp();
         }
     }
-    write_mesh(&out.join("object.ply"), &object)?;
+    object
+}
 
-    outln!("== 2. simulate a scan: 24 views, 640×480, 4 samples per pixel, Gray-code captures");
-    let scan_dir = out.join("scan");
-    let sim = SimulateOptions {
-        views: 24,
-        width: 640,
-        height: 480,
-        spp: 4,
-        seed: args.seed,
-        ..Default::default()
-    };
-    let t = Instant::now();
-    simulate(&object, &scan_dir, &sim, |_| ())?;
-    outln!("   {:.1} s", t.elapsed().as_secs_f64());
-
-    outln!("== 3. decode the captures");
-    let t = Instant::now();
-    let scan = Scan::open(&scan_dir)?;
-    let views: Vec<usize> = (0..sim.views).collect();
-    decode_scan(&scan, &views, &DecodeOptions::default(), |_| ())?;
-    outln!("   {:.1} s", t.elapsed().as_secs_f64());
-
-    outln!("== 4. visual hull (1 mm voxels)");
-    let t = Instant::now();
+/// The pipeline's entry point with the fast preset, from the visual hull.
+fn reconstruct(scan: &Scan, views: Vec<usize>, seed: u64, rec: &Path) -> Result<Outcome> {
     let mut settings = Settings::preset("fast").expect("a built-in preset");
-    settings.seed = args.seed;
-    let (inputs, warnings) = load_inputs(&scan, &views, settings.target_weights)?;
-    for w in &warnings {
-        eprintln!("warning: {w}");
-    }
-    let (hull, _) = visual_hull(
-        &inputs.silhouettes,
-        &HullOptions::default(),
-        &ProgressBar::hidden(),
-    )?;
-    write_mesh(&out.join("hull.ply"), &hull)?;
-    outln!(
-        "   {} faces, {:.1} s",
-        hull.faces.len(),
-        t.elapsed().as_secs_f64()
-    );
-
-    outln!("== 5. reconstruct (preset fast)");
-    let t = Instant::now();
-    let bars = Bars::new();
-    let rec = out.join("reconstruction");
-    let finished = reconstruct::run(
-        &inputs,
-        Start::Mesh(&hull),
-        &settings,
-        &rec,
-        Existing::Nothing,
-        &bars,
-        &AtomicBool::new(false),
-    )?;
-    let (ck, result) = (finished.checkpoint, finished.mesh);
-    bars.bar.finish_and_clear();
-    write_mesh(&rec.join("result.ply"), &result)?;
-    crate::reconstruct::plot::loss_plot(
-        &rec.join("loss.png"),
-        &ck.history,
-        settings.warmup_stages,
-    )?;
-    outln!("   {:.1} s", t.elapsed().as_secs_f64());
-
-    outln!("== 6. evaluate against the object as placed in the scan");
-    let truth = crate::mesh::io::read_mesh(&scan_dir.join("ground_truth.ply"))?;
-    let o = EvalOptions {
-        samples: 300_000,
-        seed: args.seed,
-        ..Default::default()
+    settings.seed = seed;
+    let job = Job {
+        scan,
+        views,
+        settings,
+        start: Start::Hull(HullOptions::default()),
+        out: rec,
+        existing: Existing::Nothing,
     };
-    let (eh, er) = (evaluate(&hull, &truth, &o)?, evaluate(&result, &truth, &o)?);
+    let bars = StageBars::new();
+    let outcome = reconstruct_scan(job, &bars, &AtomicBool::new(false))?;
+    bars.bar.finish_and_clear();
+    Ok(outcome)
+}
+
+/// The hull and the result against the scan's ground truth, printed and written to eval.json.
+fn evaluate_hull_and_result(scan_dir: &Path, rec: &Path, outcome: &Outcome, out: &Path) -> Result<()> {
+    let truth = read_mesh(&scan_dir.join("ground_truth.ply"))?;
+    let hull = read_mesh(&rec.join("hull.ply"))?;
+    let eh = evaluate(&hull, &truth, &EvalOptions::default())?;
+    let er = outcome
+        .evaluation
+        .clone()
+        .context("internal error: the demo's scan has a ground truth")?;
     outln!("{}", line("visual hull", &eh));
     outln!("{}", line("reconstruction", &er));
     super::write_json(
         &out.join("eval.json"),
         &serde_json::json!({ "hull": eh.to_json(), "reconstruction": er.to_json() }),
-    )?;
-    outln!(
-        "\ndemo done in {:.1} s; in {}: object.ply, scan/ (captures, decoded/), hull.ply, reconstruction/ (result.ply, stage meshes, loss.png), eval.json",
-        t0.elapsed().as_secs_f64(),
-        args.out.display()
-    );
-    staged.commit()
+    )
 }

@@ -32,9 +32,10 @@ mod reconstruct;
 mod remesh;
 mod simulate;
 
-use std::path::Path;
 
 use anyhow::Result;
+
+use crate::util::atomic::write_json;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 /// Reconstruct the mesh of a solid transparent object from a turntable Gray-code scan.
@@ -119,14 +120,4 @@ pub fn run() -> Result<()> {
         Command::Bench(b) => bench::run(&b),
         Command::Demo(a) => demo::run(&a),
     }
-}
-
-/// Writes `value` as pretty JSON to `path`, atomically.
-fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
-    use anyhow::Context;
-    crate::util::atomic::write_atomic(path, |w| {
-        serde_json::to_writer_pretty(&mut *w, value)?;
-        writeln!(w)
-    })
-    .with_context(|| format!("cannot write {}", path.display()))
 }

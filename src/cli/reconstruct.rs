@@ -1,22 +1,21 @@
 //! `glasscan reconstruct SCAN -o OUT`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 
-use super::common::parse_views;
-use crate::eval::{evaluate, EvalOptions};
+use super::common::{parse_views, StageBars};
 use crate::hull::HullOptions;
-use crate::mesh::io::{read_mesh, write_mesh};
-use crate::mesh::stats::quality;
+use crate::mesh::io::read_mesh;
+use crate::mesh::validate::ensure_valid;
+use crate::mesh::TriMesh;
 use crate::reconstruct::config::Settings;
-use crate::reconstruct::plot::loss_plot;
-use crate::reconstruct::{self, output, Existing, IterationRecord, Progress, StageReport, Start};
+use crate::reconstruct::output;
+use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
+use crate::reconstruct::Start;
 use crate::scan::Scan;
 
 #[derive(Args, Debug)]
@@ -54,65 +53,36 @@ pub struct ReconstructArgs {
     pub hull_voxel_mm: f64,
 }
 
-/// A progress bar per stage and a line per finished stage.
-pub(super) struct Bars {
-    pub bar: ProgressBar,
-}
-
-impl Bars {
-    pub fn new() -> Self {
-        Self {
-            bar: ProgressBar::new(0).with_style(
-                ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg} ({eta})")
-                    .expect("static template"),
-            ),
-        }
-    }
-}
-
-impl Progress for Bars {
-    fn stage_start(
-        &self,
-        stage: usize,
-        stages: usize,
-        edge_mm: f64,
-        faces: usize,
-        iterations: usize,
-    ) {
-        self.bar.reset();
-        self.bar.set_length(iterations as u64);
-        self.bar.set_prefix(format!(
-            "stage {}/{stages} ({edge_mm:.2} mm, {faces} faces)",
-            stage + 1
-        ));
-    }
-    fn iteration(&self, r: &IterationRecord) {
-        self.bar.set_message(format!("loss {:.3e}", r.total));
-        self.bar.inc(1);
-    }
-    fn stage_end(&self, r: &StageReport) {
-        self.bar.suspend(|| {
-            eprintln!(
-                "stage {:>2}: edge {:.2} mm, {} faces, {:.1} s, loss {:.3e} (refraction {:.3e}, silhouette {:.3e}, smoothness {:.3e}), rays used {}, dropped {}",
-                r.stage + 1,
-                r.edge_mm,
-                r.faces,
-                r.seconds,
-                r.last.total,
-                r.last.refraction,
-                r.last.silhouette,
-                r.last.smoothness,
-                r.refraction_rays_used,
-                r.refraction_drops.total()
-            )
-        });
-    }
-}
-
 pub fn run(a: &ReconstructArgs) -> Result<()> {
-    let t0 = Instant::now();
     let scan = Scan::open(&a.scan)?;
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
+    let settings = settings(a)?;
+    let existing = output::prepare(&a.output, a.resume, a.force)?;
+    let init = a.init.as_deref().map(read_init).transpose()?;
+    let start = match &init {
+        Some(m) => Start::Mesh(m),
+        None => Start::Hull(HullOptions {
+            voxel_mm: a.hull_voxel_mm,
+            ..HullOptions::default()
+        }),
+    };
+    let job = Job {
+        scan: &scan,
+        views,
+        settings,
+        start,
+        out: &a.output,
+        existing,
+    };
+    let stop = stop_on_ctrl_c();
+    let bars = StageBars::new();
+    let outcome = reconstruct_scan(job, &bars, &stop)?;
+    bars.bar.finish_and_clear();
+    print_summary(a, &outcome)
+}
+
+/// The preset, with the config file's keys and the seed applied, range-checked.
+fn settings(a: &ReconstructArgs) -> Result<Settings> {
     let mut settings = Settings::preset(&a.preset).with_context(|| {
         format!(
             "--preset {}: choose fast, balanced, accurate or drt",
@@ -129,92 +99,50 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
     if let Some(seed) = a.seed {
         settings.seed = seed;
     }
-    settings.check().map_err(|e| anyhow::anyhow!("{e}"))?;
-    let existing = output::prepare(&a.output, a.resume, a.force)?;
-    let (inputs, warnings) = reconstruct::load_inputs(&scan, &views, settings.target_weights)?;
-    for w in &warnings {
-        eprintln!("warning: {w}");
-    }
-    let start = match &a.init {
-        Some(p) => {
-            let m = read_mesh(p)?;
-            crate::mesh::validate::ensure_valid(&m)
-                .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-            Some(m)
-        }
-        None => None,
-    };
-    let start = match &start {
-        Some(m) => Start::Mesh(m),
-        None => Start::Hull(HullOptions {
-            voxel_mm: a.hull_voxel_mm,
-            ..HullOptions::default()
-        }),
-    };
+    settings.check().map_err(anyhow::Error::msg)?;
+    Ok(settings)
+}
+
+/// The `--init` mesh, which must be a valid closed surface.
+fn read_init(path: &Path) -> Result<TriMesh> {
+    let m = read_mesh(path)?;
+    ensure_valid(&m).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    Ok(m)
+}
+
+/// A flag the first Ctrl-C sets (the run stops after the stage's commit); a second quits.
+fn stop_on_ctrl_c() -> Arc<AtomicBool> {
     let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        // First Ctrl-C: finish the stage and save its checkpoint; second: quit at once.
-        let _ = ctrlc::set_handler(move || {
-            if stop.swap(true, Ordering::SeqCst) {
-                std::process::exit(130);
-            }
-            eprintln!("\nstopping after this stage's checkpoint (Ctrl-C again to quit now)");
-        });
-    }
-    if matches!(existing, Existing::Nothing) && matches!(start, Start::Hull(_)) {
-        eprintln!(
-            "visual hull ({} views, {} mm voxels) ...",
-            inputs.silhouettes.len(),
-            a.hull_voxel_mm
-        );
-    }
-    let bars = Bars::new();
-    let finished = reconstruct::run(&inputs, start, &settings, &a.output, existing, &bars, &stop)?;
-    bars.bar.finish_and_clear();
-    let (ck, mesh) = (finished.checkpoint, finished.mesh);
-    if !finished.complete {
+    let flag = stop.clone();
+    let _ = ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("\nstopping after this stage's checkpoint (Ctrl-C again to quit now)");
+    });
+    stop
+}
+
+/// The closing lines: where the result is, its figures, or how to continue a stopped run.
+fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
+    let ck = &outcome.finished.checkpoint;
+    if !outcome.finished.complete {
         bail!(
             "stopped after stage {} of {} (checkpoint saved): continue with --resume",
             ck.stages_done,
-            settings.total_stages()
+            ck.settings.total_stages()
         );
     }
-    write_mesh(&a.output.join("result.ply"), &mesh)?;
-    loss_plot(
-        &a.output.join("loss.png"),
-        &ck.history,
-        settings.warmup_stages,
-    )?;
-    let truth = a.scan.join("ground_truth.ply");
-    let evaluation = if truth.is_file() {
-        let reference = read_mesh(&truth)?;
-        let e = evaluate(&mesh, &reference, &EvalOptions::default())?;
-        Some(e)
-    } else {
-        None
-    };
-    let report = serde_json::json!({
-        "settings": ck.settings,
-        "views": views.len(),
-        "seconds_total": t0.elapsed().as_secs_f64(),
-        "seconds_stages": ck.stages.iter().map(|s| s.seconds).sum::<f64>(),
-        "stages": ck.stages,
-        "final_mesh": quality(&mesh),
-        "evaluation_against_ground_truth": evaluation.as_ref().map(|e| e.to_json()),
-        "warnings": warnings,
-    });
-    super::write_json(&a.output.join("report.json"), &report)?;
     outln!(
         "reconstructed {} ({} preset, {} stages) -> {}: {} faces in {:.1} s of stages",
         a.scan.display(),
-        settings.preset,
-        settings.total_stages(),
+        ck.settings.preset,
+        ck.settings.total_stages(),
         a.output.join("result.ply").display(),
-        mesh.faces.len(),
+        outcome.finished.mesh.faces.len(),
         ck.stages.iter().map(|s| s.seconds).sum::<f64>()
     );
-    if let Some(e) = &evaluation {
+    if let Some(e) = &outcome.evaluation {
         outln!(
             "against the scan's ground truth: accuracy {:.3} mm, completeness {:.3} mm",
             e.accuracy_mm,

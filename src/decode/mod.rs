@@ -3,7 +3,6 @@
 //! README (`decoded/` of the scan folder).
 
 pub mod compare;
-pub mod form;
 pub mod graycode;
 pub mod mask;
 pub mod phase;
@@ -13,11 +12,11 @@ use std::path::Path;
 use anyhow::{bail, Context, Result};
 use nalgebra::Point3;
 use opencv::core::{MatTraitConst, MatTraitConstManual, Vec3b, Vec4w};
-use serde::{Deserialize, Serialize};
 
 use crate::patterns::{GrayCode, PhaseShift};
 use crate::scan::Scan;
 use crate::util::fixed::{FixedPoint, NONE};
+use crate::scan::decoded::{self as form, ViewSummary};
 use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
 use graycode::{decode_view, BitTest, PixelDecode};
@@ -130,20 +129,6 @@ pub fn decode_captures(
     })
 }
 
-/// Per-view figures of a decode.
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct ViewSummary {
-    pub view: usize,
-    pub object_pixels: usize,
-    /// Share of the object pixels with a decoded monitor point.
-    pub decoded_share: f64,
-    /// Share of those whose every bit is reliable.
-    pub complete_share: f64,
-    /// Mask rule 3's threshold used (relative white drop), where a background was captured.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub white_drop: Option<f64>,
-    pub warning: Option<String>,
-}
 
 /// Decodes views `views` of `scan` into `scan/decoded/` (replaced whole once the decode is
 /// complete; a failure leaves the previous decode as it was).

@@ -5,7 +5,7 @@
 //! long for the shape's features fails one of these (a pig remeshed at 30 mm edges keeps
 //! 16 faces 2.6 mm across: its volume ratio is about 0).
 
-use crate::mesh::remesh::{remesh, RemeshError, RemeshOptions};
+use crate::remesh::{remesh, RemeshError, RemeshOptions};
 use crate::mesh::validate::validate;
 use crate::mesh::TriMesh;
 use crate::trace::{BuildMode, Device, Scene, TraceError};
@@ -124,7 +124,7 @@ fn largest_usable_edge(input: &TriMesh, opts: &RemeshOptions, seed: u64) -> Opti
         .find(|&h| {
             let o = RemeshOptions {
                 edge_mm: h,
-                adaptive: opts.adaptive.map(|a| crate::mesh::remesh::AdaptiveSizing {
+                adaptive: opts.adaptive.map(|a| crate::remesh::AdaptiveSizing {
                     min_edge_mm: a.min_edge_mm.min(h),
                     ..a
                 }),

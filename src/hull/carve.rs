@@ -20,7 +20,7 @@ use indicatif::ProgressBar;
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
-use super::silhouette::Silhouette;
+use crate::scan::silhouette::Silhouette;
 use crate::mesh::marching_cubes::{FieldBlock, Grid};
 
 /// The carving field over a set of silhouettes.

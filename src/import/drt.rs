@@ -23,8 +23,8 @@ use nalgebra::{
 };
 
 use crate::calibrate::turntable::axis_of_motions;
-use crate::decode::form::{mask_path, rays_path, write_rays, write_summary, PixelRay};
-use crate::decode::ViewSummary;
+use crate::scan::decoded::{mask_path, rays_path, write_rays, write_summary, PixelRay};
+use crate::scan::decoded::ViewSummary;
 use crate::rig::{Camera, Screen, Turntable};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::util::fixed::FixedPoint;
@@ -452,7 +452,7 @@ fn plane_rms(decoded: &Path, screen: &Screen) -> Result<f64> {
 fn for_each_target(decoded: &Path, mut f: impl FnMut(Point3<f64>)) -> Result<()> {
     for v in 0..DRT_VIEWS {
         let path = rays_path(decoded, v);
-        for r in crate::decode::form::read_rays(&path, usize::MAX)? {
+        for r in crate::scan::decoded::read_rays(&path, usize::MAX)? {
             f(r.target);
         }
     }

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{Accumulator, Contributions};
-use crate::hull::silhouette::Silhouette;
+use crate::scan::silhouette::Silhouette;
 use crate::mesh::{InteriorEdge, TriMesh};
 use crate::trace::{Ray, Scene, TraceError};
 

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::refraction::{PixelTarget, ViewTargets};
-use crate::decode::form::{DecodedScan, MonitorTarget};
+use crate::scan::decoded::{DecodedScan, MonitorTarget};
 use crate::scan::Scan;
 
 /// How decoded monitor points are weighted in the refraction term.

@@ -9,7 +9,6 @@ pub mod components;
 pub mod halfedge;
 pub mod io;
 pub mod marching_cubes;
-pub mod remesh;
 pub mod sample;
 pub mod shapes;
 pub mod stats;

@@ -337,7 +337,7 @@ impl Settings {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::decode::form::MonitorTarget;
+    use crate::scan::decoded::MonitorTarget;
 
     #[test]
     fn target_weights_are_a_setting() {

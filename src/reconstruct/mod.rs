@@ -7,6 +7,7 @@
 pub mod config;
 pub mod optim;
 pub mod output;
+pub mod pipeline;
 pub mod plot;
 
 use std::path::Path;
@@ -22,13 +23,13 @@ use serde::{Deserialize, Serialize};
 
 use indicatif::ProgressBar;
 
-use crate::hull::silhouette::Silhouette;
+use crate::scan::silhouette::Silhouette;
 use crate::hull::{visual_hull, HullOptions};
 use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
 use crate::loss::smoothness::add_smoothness;
 use crate::loss::{silhouette, Accumulator, Drops};
 use crate::mesh::io::{read_mesh, write_mesh};
-use crate::mesh::remesh::{remesh, RemeshOptions};
+use crate::remesh::{remesh, RemeshOptions};
 use crate::mesh::validate::{validate, Defect};
 use crate::mesh::TriMesh;
 use crate::trace::path::MeshSurface;
@@ -108,6 +109,8 @@ pub trait Progress {
     );
     fn iteration(&self, record: &IterationRecord);
     fn stage_end(&self, report: &StageReport);
+    /// A line for the user (a warning, a step starting).
+    fn note(&self, text: &str);
 }
 
 /// What [`run`] hands back: the last committed checkpoint and its mesh.

@@ -18,7 +18,7 @@ use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::decode::ViewSummary;
+use crate::scan::decoded::ViewSummary;
 use crate::mesh::io::write_mesh;
 use crate::mesh::validate::ensure_valid;
 use crate::mesh::TriMesh;
@@ -306,7 +306,7 @@ fn simulate_into(
         progress(k);
     }
     if o.decoded_only {
-        crate::decode::form::write_summary(&dir.join("decoded"), &fixed, &decoded)?;
+        crate::scan::decoded::write_summary(&dir.join("decoded"), &fixed, &decoded)?;
     }
     let mut report = tally.report(o.views);
     report.direct_footprint_px = direct_footprint_px;
@@ -551,7 +551,7 @@ fn write_exact_decoded(
             _ => Vec4w::from([NONE; 4]),
         })
         .collect();
-    crate::decode::form::write_view(dir, k, (cam.width, cam.height), &mask, &monitor)?;
+    crate::scan::decoded::write_view(dir, k, (cam.width, cam.height), &mask, &monitor)?;
     let object = mask.iter().filter(|&&m| m == 255).count();
     let decoded = monitor.iter().filter(|m| m[0] != NONE).count();
     Ok(ViewSummary {

@@ -35,3 +35,13 @@ where
     tmp.persist(path).map_err(|e| e.error)?;
     Ok(())
 }
+
+/// Writes `value` as pretty JSON to `path`, atomically.
+pub fn write_json(path: &Path, value: &serde_json::Value) -> anyhow::Result<()> {
+    use anyhow::Context;
+    write_atomic(path, |w| {
+        serde_json::to_writer_pretty(&mut *w, value)?;
+        writeln!(w)
+    })
+    .with_context(|| format!("cannot write {}", path.display()))
+}

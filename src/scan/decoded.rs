@@ -16,9 +16,25 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{Point3, Vector3};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec4w};
 
-use super::ViewSummary;
+use serde::{Deserialize, Serialize};
 use crate::util::fixed::FixedPoint;
 use crate::util::image::write_pixels;
+
+
+/// Per-view figures of a decode.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ViewSummary {
+    pub view: usize,
+    pub object_pixels: usize,
+    /// Share of the object pixels with a decoded monitor point.
+    pub decoded_share: f64,
+    /// Share of those whose every bit is reliable.
+    pub complete_share: f64,
+    /// Mask rule 3's threshold used (relative white drop), where a background was captured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub white_drop: Option<f64>,
+    pub warning: Option<String>,
+}
 
 /// The decoded monitor point of one camera pixel: coordinates and cell widths, monitor pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -14,9 +14,9 @@
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
-use super::halfedge::HalfEdgeMesh;
-use super::validate::{validate, Defect, InvalidMesh};
-use super::TriMesh;
+use crate::mesh::halfedge::HalfEdgeMesh;
+use crate::mesh::validate::{validate, Defect, InvalidMesh};
+use crate::mesh::TriMesh;
 use crate::trace::{BuildMode, Device, Scene, TraceError};
 
 /// Settings of [`remesh`].
@@ -209,7 +209,7 @@ fn curvature_sizing(
     a: AdaptiveSizing,
 ) -> Vec<f64> {
     let mut kappa = vec![0.0f64; mesh.positions.len()];
-    for [u, v] in super::stats::unique_edges(mesh) {
+    for [u, v] in crate::mesh::stats::unique_edges(mesh) {
         let (u, v) = (u as usize, v as usize);
         let len = (mesh.positions[u] - mesh.positions[v]).norm();
         if len > 0.0 {

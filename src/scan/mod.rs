@@ -24,6 +24,9 @@
 //! # phase_shift = { steps = 8, period_px = 64 }   # optional sinusoidal patterns
 //! ```
 
+pub mod decoded;
+pub mod silhouette;
+
 use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
