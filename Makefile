@@ -3,7 +3,7 @@
 #   make test   build and run the whole test suite
 # Both first make sure the Debian packages the build needs are installed.
 
-DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev libhdf5-dev clang libclang-dev cmake pkg-config
+DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev libhdf5-dev clang libclang-dev cmake pkg-config fonts-dejavu-core
 CARGO ?= cargo
 
 .PHONY: deps demo test test-embree4 lint fuzz bench bench-remesh bench-simulate clean

@@ -103,7 +103,32 @@ fn build_shim(explicit: Option<&ExplicitEmbree>) -> PathBuf {
     config.build()
 }
 
+/// The font of the plots' text: copied into OUT_DIR and compiled into the binary, so plots need
+/// no font at run time. `GLASSCAN_FONT` names another TrueType file.
+fn plot_font() {
+    println!("cargo:rerun-if-env-changed=GLASSCAN_FONT");
+    let candidates = [
+        std::env::var("GLASSCAN_FONT").unwrap_or_default(),
+        "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf".into(),
+        "/usr/share/fonts/TTF/DejaVuSans.ttf".into(),
+        "/usr/share/fonts/dejavu/DejaVuSans.ttf".into(),
+    ];
+    let Some(font) = candidates
+        .iter()
+        .find(|c| !c.is_empty() && Path::new(c).is_file())
+    else {
+        fail(
+            "glasscan: the plots' font DejaVuSans.ttf not found; install it: apt-get install \
+             fonts-dejavu-core (or set GLASSCAN_FONT to a .ttf file)",
+        );
+    };
+    let out = PathBuf::from(std::env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
+    std::fs::copy(font, out.join("plot_font.ttf"))
+        .unwrap_or_else(|e| fail(&format!("glasscan: cannot copy {font}: {e}")));
+}
+
 fn main() {
+    plot_font();
     println!("cargo:rerun-if-changed=wrapper");
     println!("cargo:rerun-if-changed=cmake");
     for var in EMBREE_VARS {

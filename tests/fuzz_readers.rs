@@ -8,12 +8,12 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use glasscan::scan::decoded::{read_rays, DecodedScan};
 use glasscan::import::drt::import_drt;
 use glasscan::mesh::io::{read_mesh, write_mesh, write_mesh_as, MeshFormat};
 use glasscan::mesh::shapes::icosphere;
 use glasscan::reconstruct::config::Settings;
 use glasscan::rig::calib_io::{read_view_poses, write_view_poses};
+use glasscan::scan::decoded::{read_rays, DecodedScan};
 use glasscan::scan::Scan;
 use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::Isometry3;

@@ -4,7 +4,6 @@
 
 #![allow(clippy::needless_range_loop)]
 
-use glasscan::scan::silhouette::Silhouette;
 use glasscan::loss::refraction::{
     add_view, pixel_gradient, MeshState, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
 };
@@ -14,6 +13,7 @@ use glasscan::loss::{Accumulator, Contributions, DropReason, Robust};
 use glasscan::mesh::shapes::{ellipsoid, icosphere, perturb_radially};
 use glasscan::mesh::TriMesh;
 use glasscan::rig::{Camera, Turntable};
+use glasscan::scan::silhouette::Silhouette;
 use glasscan::trace::path::{trace_chunk, MeshSurface, NormalModel, PathEnd, PathSettings, Trail};
 use glasscan::trace::refract::IOR_AIR;
 use glasscan::trace::{BuildMode, Device, Ray, Scene};

@@ -4,7 +4,6 @@
 use std::path::Path;
 use std::process::Command;
 
-use glasscan::scan::silhouette::Silhouette;
 use glasscan::hull::{visual_hull, HullOptions};
 use glasscan::mesh::marching_cubes::{marching_cubes, FieldBlock, Grid};
 use glasscan::mesh::sample::sample_surface;
@@ -12,6 +11,7 @@ use glasscan::mesh::shapes::{ellipsoid, figurine, torus};
 use glasscan::mesh::validate::{ensure_valid, validate, Defect};
 use glasscan::mesh::TriMesh;
 use glasscan::rig::{Camera, Turntable};
+use glasscan::scan::silhouette::Silhouette;
 use glasscan::scan::Scan;
 use glasscan::simulate::{simulate, SimulateOptions};
 use glasscan::trace::{BuildMode, Device, Ray, Scene};

@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::{Mutex, OnceLock};
 
-use glasscan::scan::decoded::DecodedScan;
 use glasscan::loss::refraction::ViewTargets;
 use glasscan::loss::targets::{scan_targets, TargetWeights};
 use glasscan::mesh::shapes::ellipsoid;
+use glasscan::scan::decoded::DecodedScan;
 use glasscan::scan::Scan;
 use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::{Point3, Vector3};

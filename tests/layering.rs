@@ -73,11 +73,15 @@ fn no_module_uses_a_module_above_it() {
     for &(module, own) in LEVELS {
         for used in uses(&src, module) {
             let Some(&theirs) = level.get(used.as_str()) else {
-                wrong.push(format!("{module} uses crate::{used}, which the table does not list"));
+                wrong.push(format!(
+                    "{module} uses crate::{used}, which the table does not list"
+                ));
                 continue;
             };
             if theirs > own && !KNOWN_EXCEPTIONS.contains(&(module, used.as_str())) {
-                wrong.push(format!("{module} (level {own}) uses {used} (level {theirs})"));
+                wrong.push(format!(
+                    "{module} (level {own}) uses {used} (level {theirs})"
+                ));
             }
         }
     }
@@ -86,7 +90,10 @@ fn no_module_uses_a_module_above_it() {
     for e in std::fs::read_dir(&src).unwrap() {
         let name = e.unwrap().file_name().to_string_lossy().replace(".rs", "");
         if !["lib", "main"].contains(&name.as_str()) {
-            assert!(level.contains_key(name.as_str()), "src/{name} is not in the table");
+            assert!(
+                level.contains_key(name.as_str()),
+                "src/{name} is not in the table"
+            );
         }
     }
 }

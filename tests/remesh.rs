@@ -3,11 +3,11 @@
 
 use glasscan::eval::sampled_distances;
 use glasscan::mesh::halfedge::HalfEdgeMesh;
-use glasscan::remesh::{remesh, RemeshError, RemeshOptions};
 use glasscan::mesh::shapes::{cuboid, ellipsoid, figurine, icosphere, perturb_radially, torus};
 use glasscan::mesh::stats::unique_edges;
 use glasscan::mesh::validate::validate;
 use glasscan::mesh::TriMesh;
+use glasscan::remesh::{remesh, RemeshError, RemeshOptions};
 use glasscan::trace::{BuildMode, Device, Scene};
 use nalgebra::{Point3, Vector3};
 use rand::{RngExt, SeedableRng};

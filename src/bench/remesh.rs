@@ -14,9 +14,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::eval::sampled_distances;
 use crate::mesh::io::{read_mesh, write_mesh};
-use crate::remesh::{remesh, RemeshOptions};
 use crate::mesh::stats::{quality, MeshQuality};
 use crate::mesh::TriMesh;
+use crate::remesh::{remesh, RemeshOptions};
 use crate::trace::{BuildMode, Device, Scene};
 
 /// Surface samples used for the distance of a remeshed mesh to its input.

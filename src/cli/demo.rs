@@ -144,7 +144,12 @@ fn reconstruct(scan: &Scan, views: Vec<usize>, seed: u64, rec: &Path) -> Result<
 }
 
 /// The hull and the result against the scan's ground truth, printed and written to eval.json.
-fn evaluate_hull_and_result(scan_dir: &Path, rec: &Path, outcome: &Outcome, out: &Path) -> Result<()> {
+fn evaluate_hull_and_result(
+    scan_dir: &Path,
+    rec: &Path,
+    outcome: &Outcome,
+    out: &Path,
+) -> Result<()> {
     let truth = read_mesh(&scan_dir.join("ground_truth.ply"))?;
     let hull = read_mesh(&rec.join("hull.ply"))?;
     let eh = evaluate(&hull, &truth, &EvalOptions::default())?;

@@ -32,7 +32,6 @@ mod reconstruct;
 mod remesh;
 mod simulate;
 
-
 use anyhow::Result;
 
 use crate::util::atomic::write_json;

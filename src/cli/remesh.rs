@@ -9,8 +9,8 @@ use clap::Args;
 use crate::bench::remesh::{figures, RemeshFigures};
 use crate::eval::fidelity::remesh_checked;
 use crate::mesh::io::{read_mesh, write_mesh};
-use crate::remesh::{AdaptiveSizing, RemeshOptions};
 use crate::mesh::stats::{quality, MeshQuality};
+use crate::remesh::{AdaptiveSizing, RemeshOptions};
 use crate::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]

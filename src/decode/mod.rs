@@ -14,9 +14,9 @@ use nalgebra::Point3;
 use opencv::core::{MatTraitConst, MatTraitConstManual, Vec3b, Vec4w};
 
 use crate::patterns::{GrayCode, PhaseShift};
+use crate::scan::decoded::{self as form, ViewSummary};
 use crate::scan::Scan;
 use crate::util::fixed::{FixedPoint, NONE};
-use crate::scan::decoded::{self as form, ViewSummary};
 use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
 use graycode::{decode_view, BitTest, PixelDecode};
@@ -128,7 +128,6 @@ pub fn decode_captures(
         white: white.to_vec(),
     })
 }
-
 
 /// Decodes views `views` of `scan` into `scan/decoded/` (replaced whole once the decode is
 /// complete; a failure leaves the previous decode as it was).

@@ -5,9 +5,9 @@
 //! long for the shape's features fails one of these (a pig remeshed at 30 mm edges keeps
 //! 16 faces 2.6 mm across: its volume ratio is about 0).
 
-use crate::remesh::{remesh, RemeshError, RemeshOptions};
 use crate::mesh::validate::validate;
 use crate::mesh::TriMesh;
+use crate::remesh::{remesh, RemeshError, RemeshOptions};
 use crate::trace::{BuildMode, Device, Scene, TraceError};
 
 use super::sampled_distances;

@@ -20,8 +20,8 @@ use indicatif::ProgressBar;
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
-use crate::scan::silhouette::Silhouette;
 use crate::mesh::marching_cubes::{FieldBlock, Grid};
+use crate::scan::silhouette::Silhouette;
 
 /// The carving field over a set of silhouettes.
 pub struct Field<'a> {

@@ -11,16 +11,16 @@ use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::scan::decoded::DecodedScan;
 use crate::eval::fidelity::remesh_checked;
 use crate::mesh::components::keep_large_components;
 use crate::mesh::marching_cubes::marching_cubes;
-use crate::remesh::RemeshOptions;
 use crate::mesh::validate::ensure_valid;
 use crate::mesh::TriMesh;
+use crate::remesh::RemeshOptions;
+use crate::scan::decoded::DecodedScan;
+use crate::scan::silhouette::Silhouette;
 use crate::scan::Scan;
 use carve::{carve, CarveStats, Field};
-use crate::scan::silhouette::Silhouette;
 
 /// Components of the carved surface with less than this share of the largest one's volume are
 /// dropped: specks left where thin parts break up at the voxel size, and cavities carved by holes

@@ -23,9 +23,9 @@ use nalgebra::{
 };
 
 use crate::calibrate::turntable::axis_of_motions;
-use crate::scan::decoded::{mask_path, rays_path, write_rays, write_summary, PixelRay};
-use crate::scan::decoded::ViewSummary;
 use crate::rig::{Camera, Screen, Turntable};
+use crate::scan::decoded::ViewSummary;
+use crate::scan::decoded::{mask_path, rays_path, write_rays, write_summary, PixelRay};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::util::fixed::FixedPoint;
 use crate::util::folder::{StagedFolder, FORCE_HINT};

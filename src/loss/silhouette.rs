@@ -21,8 +21,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{Accumulator, Contributions};
-use crate::scan::silhouette::Silhouette;
 use crate::mesh::{InteriorEdge, TriMesh};
+use crate::scan::silhouette::Silhouette;
 use crate::trace::{Ray, Scene, TraceError};
 
 type V3 = Vector3<f64>;

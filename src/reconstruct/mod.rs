@@ -23,15 +23,15 @@ use serde::{Deserialize, Serialize};
 
 use indicatif::ProgressBar;
 
-use crate::scan::silhouette::Silhouette;
 use crate::hull::{visual_hull, HullOptions};
 use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
 use crate::loss::smoothness::add_smoothness;
 use crate::loss::{silhouette, Accumulator, Drops};
 use crate::mesh::io::{read_mesh, write_mesh};
-use crate::remesh::{remesh, RemeshOptions};
 use crate::mesh::validate::{validate, Defect};
 use crate::mesh::TriMesh;
+use crate::remesh::{remesh, RemeshOptions};
+use crate::scan::silhouette::Silhouette;
 use crate::trace::path::MeshSurface;
 use crate::trace::refract::IOR_AIR;
 use crate::trace::BuildMode;

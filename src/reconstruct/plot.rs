@@ -1,288 +1,293 @@
-//! Plots a person can open: `loss.png` (the loss terms over the iterations, log scale, stage
-//! boundaries in grey) and the benchmark's time against accuracy.
+//! The plots of a reconstruction, drawn with `plotters` (axes, ticks, legends) and written as a
+//! PNG and, beside it, an SVG of the same drawing: the loss curves of a run and the
+//! time–accuracy trade of `bench reconstruct`.
 
 use std::path::Path;
+use std::sync::Once;
 
-use anyhow::Result;
-use opencv::core::{Mat, Point, Scalar, CV_8UC3};
-use opencv::imgproc::{circle, line, FILLED, LINE_AA};
+use anyhow::{anyhow, Result};
+use opencv::core::{Mat, CV_8UC3};
+use opencv::prelude::*;
+use plotters::coord::Shift;
+use plotters::prelude::*;
 
 use super::IterationRecord;
-use crate::util::image::{label, write_png};
+use crate::util::atomic::write_atomic;
+use crate::util::image::write_png;
 
-/// A plotted term: name, value, colour (BGR).
-type Term = (&'static str, fn(&IterationRecord) -> f64, Scalar);
+/// DejaVu Sans, compiled in (build.rs), so that plots need no font at run time.
+static FONT: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/plot_font.ttf"));
 
-/// Draws the weighted term means of `history` (one point per iteration) into a PNG; the first
-/// `warmup_stages` stages (DRT's weights, so on another scale) are labelled as such.
-pub fn loss_plot(path: &Path, history: &[IterationRecord], warmup_stages: usize) -> Result<()> {
-    let (w, h, margin) = (900, 520, 60);
-    let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC3, Scalar::all(255.0))?;
-    let terms: [Term; 4] = [
-        ("total", |r| r.total, Scalar::new(0.0, 0.0, 0.0, 0.0)),
-        (
-            "refraction",
-            |r| r.refraction,
-            Scalar::new(200.0, 80.0, 0.0, 0.0),
-        ),
-        (
-            "silhouette",
-            |r| r.silhouette,
-            Scalar::new(0.0, 140.0, 0.0, 0.0),
-        ),
-        (
-            "smoothness",
-            |r| r.smoothness,
-            Scalar::new(0.0, 0.0, 200.0, 0.0),
-        ),
-    ];
-    let logs: Vec<f64> = history
-        .iter()
-        .flat_map(|r| terms.iter().map(move |t| (t.1)(r)))
-        .filter(|v| *v > 0.0 && v.is_finite())
-        .map(f64::log10)
-        .collect();
-    let (lo, hi) = logs
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
-            (a.min(v), b.max(v))
-        });
-    let (lo, hi) = if lo.is_finite() {
-        (lo.floor(), hi.ceil().max(lo.floor() + 1.0))
-    } else {
-        (0.0, 1.0)
-    };
-    let n = history.len().max(2) as f64;
-    let x = |i: usize| margin + ((w - 2 * margin) as f64 * i as f64 / (n - 1.0)) as i32;
-    let y = |v: f64| h - margin - ((h - 2 * margin) as f64 * (v.log10() - lo) / (hi - lo)) as i32;
-    let grey = Scalar::all(190.0);
-    for (i, r) in history.iter().enumerate() {
-        if i > 0 && r.stage != history[i - 1].stage {
-            line(
-                &mut img,
-                Point::new(x(i), margin),
-                Point::new(x(i), h - margin),
-                grey,
-                1,
-                LINE_AA,
-                0,
-            )?;
-        }
-    }
-    axes(&mut img, w, h, margin)?;
-    let mut decade = lo;
-    while decade <= hi {
-        let yy = y(10f64.powf(decade));
-        label(
-            &mut img,
-            &format!("1e{decade}"),
-            Point::new(5, yy + 4),
-            0.4,
-            Scalar::all(0.0),
-        )?;
-        decade += 1.0;
-    }
-    for (k, (name, f, colour)) in terms.iter().enumerate() {
-        for i in 1..history.len() {
-            let (a, b) = (f(&history[i - 1]), f(&history[i]));
-            if a > 0.0 && b > 0.0 && a.is_finite() && b.is_finite() {
-                line(
-                    &mut img,
-                    Point::new(x(i - 1), y(a)),
-                    Point::new(x(i), y(b)),
-                    *colour,
-                    1,
-                    LINE_AA,
-                    0,
-                )?;
-            }
-        }
-        label(
-            &mut img,
-            name,
-            Point::new(margin + 130 * k as i32, margin - 20),
-            0.5,
-            *colour,
-        )?;
-    }
-    if warmup_stages > 0 {
-        let end = history
-            .iter()
-            .position(|r| r.stage >= warmup_stages)
-            .unwrap_or(history.len());
-        let dark = Scalar::all(90.0);
-        label(
-            &mut img,
-            "warm-up (DRT's weights)",
-            Point::new(x(0) + 6, margin + 16),
-            0.45,
-            dark,
-        )?;
-        if end < history.len() {
-            label(
-                &mut img,
-                "refinement",
-                Point::new(x(end) + 6, margin + 16),
-                0.45,
-                dark,
-            )?;
-        }
-    }
-    label(
-        &mut img,
-        "iteration (grey: new stage)",
-        Point::new(w / 2 - 100, h - 20),
-        0.5,
-        Scalar::all(0.0),
-    )?;
-    write_png(path, &img)
+/// Registers [`FONT`] as plotters' "sans-serif" (once per process).
+fn register_font() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        // The font is compiled in and known to parse; a failure would only lose the text.
+        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
+    });
 }
 
-/// The two axis lines of a `w` × `h` plot with `margin`.
-fn axes(img: &mut Mat, w: i32, h: i32, margin: i32) -> Result<()> {
-    let black = Scalar::all(0.0);
-    line(
-        img,
-        Point::new(margin, h - margin),
-        Point::new(w - margin, h - margin),
-        black,
-        1,
-        LINE_AA,
-        0,
-    )?;
-    line(
-        img,
-        Point::new(margin, margin),
-        Point::new(margin, h - margin),
-        black,
-        1,
-        LINE_AA,
-        0,
-    )?;
-    Ok(())
+/// Plot size, pixels.
+const SIZE: (u32, u32) = (1000, 560);
+
+/// Draws with `draw` into `png` (atomically) and into the SVG beside it.
+fn png_and_svg(
+    png: &Path,
+    draw_png: impl FnOnce(&DrawingArea<BitMapBackend, Shift>) -> Result<()>,
+    draw_svg: impl FnOnce(&DrawingArea<SVGBackend, Shift>) -> Result<()>,
+) -> Result<()> {
+    register_font();
+    let mut rgb = vec![0u8; (SIZE.0 * SIZE.1 * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut rgb, SIZE).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        draw_png(&root)?;
+        root.present().map_err(plot_err)?;
+    }
+    // OpenCV writes BGR: swap the channels of plotters' RGB.
+    for px in rgb.chunks_exact_mut(3) {
+        px.swap(0, 2);
+    }
+    let mat = Mat::new_rows_cols_with_data(SIZE.1 as i32, (SIZE.0 * 3) as i32, &rgb)?
+        .reshape(3, SIZE.1 as i32)?
+        .try_clone()?;
+    debug_assert_eq!(mat.typ(), CV_8UC3);
+    write_png(png, &mat)?;
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, SIZE).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        draw_svg(&root)?;
+        root.present().map_err(plot_err)?;
+    }
+    let svg_path = png.with_extension("svg");
+    write_atomic(&svg_path, |w| w.write_all(svg.as_bytes()))
+        .map_err(|e| anyhow!("cannot write {}: {e}", svg_path.display()))
 }
 
-/// Colours (BGR) of the presets in [`time_accuracy_plot`].
-const PRESET_COLOURS: [(&str, [f64; 3]); 4] = [
-    ("fast", [0.0, 140.0, 0.0]),
-    ("balanced", [200.0, 80.0, 0.0]),
-    ("accurate", [0.0, 0.0, 200.0]),
-    ("drt", [120.0, 120.0, 120.0]),
+/// plotters' errors as anyhow's.
+fn plot_err<E: std::fmt::Display>(e: E) -> anyhow::Error {
+    anyhow!("plotting: {e}")
+}
+
+/// A plotted term of the loss: name, value, colour.
+type Term = (&'static str, fn(&IterationRecord) -> f64, RGBColor);
+
+/// The plotted terms.
+const TERMS: [Term; 4] = [
+    ("total", |r| r.total, BLACK),
+    ("refraction", |r| r.refraction, RGBColor(0, 80, 200)),
+    ("silhouette", |r| r.silhouette, RGBColor(0, 140, 0)),
+    ("smoothness", |r| r.smoothness, RGBColor(200, 0, 0)),
 ];
 
-/// Accuracy (mm, linear) against wall time (s, log scale): one polyline per run through its
+/// Draws the weighted term means of `history` (one point per iteration, stage boundaries as
+/// grey lines): the first `warmup_stages` stages (DRT's terms and weights, whose total can be
+/// negative) on a linear scale in a panel of their own, the other stages on a log scale.
+pub fn loss_plot(path: &Path, history: &[IterationRecord], warmup_stages: usize) -> Result<()> {
+    let split = history
+        .iter()
+        .position(|r| r.stage >= warmup_stages)
+        .unwrap_or(history.len());
+    let (warmup, main) = history.split_at(split);
+    png_and_svg(
+        path,
+        |root| loss_panels(root, warmup, main, split),
+        |root| loss_panels(root, warmup, main, split),
+    )
+}
+
+/// The warm-up panel (if any) beside the main one.
+fn loss_panels<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    warmup: &[IterationRecord],
+    main: &[IterationRecord],
+    offset: usize,
+) -> Result<()> {
+    if warmup.is_empty() {
+        return loss_panel(
+            root,
+            main,
+            0,
+            "loss terms (weighted means), log scale",
+            true,
+        );
+    }
+    let (left, right) = root.split_horizontally(SIZE.0 * 2 / 5);
+    loss_panel(
+        &left,
+        warmup,
+        0,
+        "warm-up (DRT's terms and weights), linear",
+        false,
+    )?;
+    loss_panel(&right, main, offset, "stages, log scale", true)
+}
+
+/// One panel of loss curves over iterations `offset..offset + records.len()`.
+fn loss_panel<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    records: &[IterationRecord],
+    offset: usize,
+    title: &str,
+    log: bool,
+) -> Result<()> {
+    let values = records
+        .iter()
+        .flat_map(|r| TERMS.iter().map(move |t| (t.1)(r)))
+        .filter(|v| v.is_finite() && (!log || *v > 0.0));
+    let (lo, hi) = values.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
+        (a.min(v), b.max(v))
+    });
+    let (lo, hi) = if lo.is_finite() {
+        (lo, hi)
+    } else {
+        (1e-3, 1.0)
+    };
+    let x = offset as f64..(offset + records.len().max(2) - 1) as f64;
+    let mut b = ChartBuilder::on(area);
+    b.caption(title, ("sans-serif", 18))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(70);
+    if log {
+        let y = (lo * 0.8..hi * 1.25).log_scale();
+        let mut chart = b.build_cartesian_2d(x, y).map_err(plot_err)?;
+        draw_loss_series(&mut chart, records, offset, |v| v > 0.0)
+    } else {
+        let pad = 0.05 * (hi - lo).abs().max(1e-12);
+        let mut chart = b
+            .build_cartesian_2d(x, lo - pad..hi + pad)
+            .map_err(plot_err)?;
+        draw_loss_series(&mut chart, records, offset, |_| true)
+    }
+}
+
+/// Axes, stage boundaries, the four terms (points `keep` accepts) and the legend.
+fn draw_loss_series<'a, DB, Y>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<plotters::coord::types::RangedCoordf64, Y>>,
+    records: &[IterationRecord],
+    offset: usize,
+    keep: impl Fn(f64) -> bool,
+) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    Y: Ranged<ValueType = f64> + plotters::coord::ranged1d::ValueFormatter<f64>,
+{
+    chart
+        .configure_mesh()
+        .x_desc("iteration")
+        .y_desc("loss")
+        .x_labels(6)
+        .x_label_formatter(&|x| format!("{x:.0}"))
+        .light_line_style(WHITE.mix(0.0))
+        .draw()
+        .map_err(plot_err)?;
+    let (_, y_range) = (chart.x_range(), chart.y_range());
+    for (i, r) in records.iter().enumerate().skip(1) {
+        if r.stage != records[i - 1].stage {
+            let x = (offset + i) as f64;
+            chart
+                .draw_series(LineSeries::new(
+                    [(x, y_range.start), (x, y_range.end)],
+                    RGBColor(190, 190, 190),
+                ))
+                .map_err(plot_err)?;
+        }
+    }
+    for (name, value, colour) in TERMS {
+        let points = records
+            .iter()
+            .enumerate()
+            .map(|(i, r)| ((offset + i) as f64, value(r)))
+            .filter(|(_, v)| v.is_finite() && keep(*v));
+        chart
+            .draw_series(LineSeries::new(points, colour.stroke_width(2)))
+            .map_err(plot_err)?
+            .label(name)
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(2)));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()
+        .map_err(plot_err)
+}
+
+/// Colours of the presets in [`time_accuracy_plot`].
+const PRESET_COLOURS: [(&str, RGBColor); 4] = [
+    ("fast", RGBColor(0, 140, 0)),
+    ("balanced", RGBColor(0, 80, 200)),
+    ("accurate", RGBColor(200, 0, 0)),
+    ("drt", RGBColor(120, 120, 120)),
+];
+
+/// Accuracy (mm, linear) against wall time (s, log scale): one line per run through its
 /// (time, accuracy) after the hull and each stage, coloured by the preset named in its label
-/// (the label's third word), labelled at its end.
+/// (the label's third word), with a legend of the labels.
 pub fn time_accuracy_plot(path: &Path, series: &[(String, Vec<(f64, f64)>)]) -> Result<()> {
-    let (w, h, margin) = (1000, 640, 70);
-    let mut img = Mat::new_rows_cols_with_default(h, w, CV_8UC3, Scalar::all(255.0))?;
-    let pts = series
+    png_and_svg(
+        path,
+        |root| time_accuracy_chart(root, series),
+        |root| time_accuracy_chart(root, series),
+    )
+}
+
+fn time_accuracy_chart<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> Result<()> {
+    let points = series
         .iter()
         .flat_map(|s| s.1.iter())
         .filter(|p| p.0 > 0.0 && p.1.is_finite());
-    let (t_lo, t_hi, a_hi) = pts.fold((f64::INFINITY, 0.0f64, 0.0f64), |(a, b, c), p| {
+    let (t_lo, t_hi, a_hi) = points.fold((f64::INFINITY, 0.0f64, 0.0f64), |(a, b, c), p| {
         (a.min(p.0), b.max(p.0), c.max(p.1))
     });
-    let (lo, hi) = if t_lo.is_finite() {
-        (
-            t_lo.log10().floor(),
-            t_hi.log10().ceil().max(t_lo.log10().floor() + 1.0),
+    let (t_lo, t_hi) = if t_lo.is_finite() {
+        (t_lo, t_hi)
+    } else {
+        (1.0, 10.0)
+    };
+    let mut chart = ChartBuilder::on(root)
+        .caption("accuracy after the hull and each stage", ("sans-serif", 20))
+        .margin(14)
+        .x_label_area_size(44)
+        .y_label_area_size(64)
+        .build_cartesian_2d(
+            (t_lo * 0.8..t_hi * 1.25).log_scale(),
+            0.0..a_hi.max(0.1) * 1.05,
         )
-    } else {
-        (0.0, 1.0)
-    };
-    let a_hi = if a_hi > 0.0 {
-        (a_hi * 10.0).ceil() / 10.0
-    } else {
-        1.0
-    };
-    let x = |t: f64| margin + ((w - 2 * margin) as f64 * (t.log10() - lo) / (hi - lo)) as i32;
-    let y = |a: f64| h - margin - ((h - 2 * margin) as f64 * a / a_hi) as i32;
-    axes(&mut img, w, h, margin)?;
-    let black = Scalar::all(0.0);
-    let mut decade = lo;
-    while decade <= hi {
-        let t = 10f64.powf(decade);
-        label(
-            &mut img,
-            &format!("{t} s"),
-            Point::new(x(t) - 15, h - margin + 18),
-            0.4,
-            black,
-        )?;
-        decade += 1.0;
-    }
-    for k in 0..=5 {
-        let a = a_hi * k as f64 / 5.0;
-        label(
-            &mut img,
-            &format!("{a:.2}"),
-            Point::new(10, y(a) + 4),
-            0.4,
-            black,
-        )?;
-    }
-    for (name, points) in series {
-        let preset = name.split_whitespace().nth(2).unwrap_or("");
-        let c = PRESET_COLOURS
+        .map_err(plot_err)?;
+    chart
+        .configure_mesh()
+        .x_desc("time (s, log scale)")
+        .y_desc("accuracy (mm)")
+        .draw()
+        .map_err(plot_err)?;
+    for (label, pts) in series {
+        let preset = label.split_whitespace().nth(2).unwrap_or("");
+        let colour = PRESET_COLOURS
             .iter()
             .find(|(p, _)| *p == preset)
-            .map_or([0.0; 3], |(_, c)| *c);
-        let colour = Scalar::new(c[0], c[1], c[2], 0.0);
-        let ok: Vec<&(f64, f64)> = points
-            .iter()
-            .filter(|p| p.0 > 0.0 && p.1.is_finite())
-            .collect();
-        for pair in ok.windows(2) {
-            line(
-                &mut img,
-                Point::new(x(pair[0].0), y(pair[0].1)),
-                Point::new(x(pair[1].0), y(pair[1].1)),
-                colour,
-                1,
-                LINE_AA,
-                0,
-            )?;
-        }
-        if let Some(end) = ok.last() {
-            circle(
-                &mut img,
-                Point::new(x(end.0), y(end.1)),
-                4,
-                colour,
-                FILLED,
-                LINE_AA,
-                0,
-            )?;
-            let short: String = name
-                .split_whitespace()
-                .filter(|w| *w != preset)
-                .collect::<Vec<_>>()
-                .join(" ");
-            label(
-                &mut img,
-                &short,
-                Point::new(x(end.0) + 6, y(end.1) - 4),
-                0.35,
-                colour,
-            )?;
-        }
+            .map_or(BLACK, |c| c.1);
+        let pts: Vec<(f64, f64)> = pts.iter().copied().filter(|p| p.0 > 0.0).collect();
+        chart
+            .draw_series(LineSeries::new(pts.iter().copied(), colour.stroke_width(2)))
+            .map_err(plot_err)?
+            .label(label.as_str())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(2)));
+        chart
+            .draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled())))
+            .map_err(plot_err)?;
     }
-    for (k, (p, c)) in PRESET_COLOURS.iter().enumerate() {
-        label(
-            &mut img,
-            p,
-            Point::new(margin + 120 * k as i32, margin - 25),
-            0.55,
-            Scalar::new(c[0], c[1], c[2], 0.0),
-        )?;
-    }
-    label(
-        &mut img,
-        "accuracy (mm) against wall time (hull + stages; a point per stage)",
-        Point::new(w / 2 - 260, h - 20),
-        0.5,
-        black,
-    )?;
-    write_png(path, &img)
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()
+        .map_err(plot_err)
 }

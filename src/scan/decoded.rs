@@ -16,10 +16,9 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{Point3, Vector3};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec4w};
 
-use serde::{Deserialize, Serialize};
 use crate::util::fixed::FixedPoint;
 use crate::util::image::write_pixels;
-
+use serde::{Deserialize, Serialize};
 
 /// Per-view figures of a decode.
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -18,12 +18,12 @@ use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::scan::decoded::ViewSummary;
 use crate::mesh::io::write_mesh;
 use crate::mesh::validate::ensure_valid;
 use crate::mesh::TriMesh;
 use crate::patterns::{GrayCode, PhaseShift};
 use crate::rig::{Camera, Screen, Turntable};
+use crate::scan::decoded::ViewSummary;
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::trace::path::{MeshSurface, NormalModel, PathSettings};
 use crate::trace::refract::IOR_AIR;
