@@ -206,10 +206,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         a.scan.display(),
         skipped.len()
     );
-    let bar = indicatif::ProgressBar::new(a.repeats.max(1) as u64).with_style(
-        indicatif::ProgressStyle::with_template("bench gradient [{bar:30}] {pos}/{len} ({eta})")
-            .expect("static template"),
-    );
+    let bar = super::common::bar("bench gradient", a.repeats.max(1));
     let r = crate::bench::gradient::run(&mesh, &targets, &s, a.repeats, |i| {
         bar.set_position(i as u64)
     })?;

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
-use indicatif::{ProgressBar, ProgressStyle};
+use super::common::bar;
 
 use crate::calibrate::board::{read_images, Board};
 use crate::calibrate::camera::{calibrate_camera, CameraOptions};
@@ -104,13 +104,6 @@ pub fn run(c: &CalibrateCommand) -> Result<()> {
     }
 }
 
-fn bar(len: usize, what: &str) -> ProgressBar {
-    ProgressBar::new(len as u64).with_style(
-        ProgressStyle::with_template(&format!("{what} [{{bar:40}}] {{pos}}/{{len}} ({{eta}})"))
-            .expect("static template"),
-    )
-}
-
 fn camera(a: &CameraArgs) -> Result<()> {
     let board = a.board.board()?;
     let (images, size) = read_images(&a.board.images)?;
@@ -119,7 +112,7 @@ fn camera(a: &CameraArgs) -> Result<()> {
         zero_tangent: a.zero_tangent,
         fix_k3: a.fix_k3,
     };
-    let b = bar(images.len(), "corners");
+    let b = bar("corners", images.len());
     let cal = calibrate_camera(&images, size, &board, &o, |_| b.inc(1))?;
     b.finish_and_clear();
     for p in &cal.skipped {

@@ -4,7 +4,6 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::{Args, ValueEnum};
-use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::import::drt::{import_drt, DrtCamera, DRT_VIEWS};
 use crate::util::paths::ensure_output_spares_inputs;
@@ -40,10 +39,7 @@ pub fn run(a: &ImportDrtArgs) -> Result<()> {
             a.ior
         );
     }
-    let bar = ProgressBar::new(DRT_VIEWS as u64).with_style(
-        ProgressStyle::with_template("import [{bar:40}] {pos}/{len} views ({eta})")
-            .expect("static template"),
-    );
+    let bar = super::common::bar("import", DRT_VIEWS);
     let camera = a.camera.map(|c| match c {
         CameraArg::Pointgrey => DrtCamera::PointGrey,
         CameraArg::Redmi => DrtCamera::Redmi,

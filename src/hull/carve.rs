@@ -87,8 +87,36 @@ pub fn carve(
         voxel_mm,
         ..Default::default()
     };
-    // 1. Coarse: a cube around the axis point nearest the camera, as wide as the field of view
-    //    at that distance.
+    bar.set_message("coarse carve");
+    let (lo, hi) = coarse_bounds(field, camera_centre_mm, half_fov_tan, voxel_mm, &mut stats)?;
+    let fine = FineGrid::new(lo, hi, voxel_mm, block)?;
+    stats.dims = fine.dims;
+    stats.origin = [lo.x, lo.y, lo.z];
+    stats.blocks = fine.blocks();
+    bar.set_message("classify blocks");
+    let (mut inside, mut surface) = classify_blocks(field, &fine);
+    stats.evaluated_points += fine.blocks();
+    let blocks = sample_surface(field, &fine, &mut inside, &mut surface, &mut stats, bar);
+    stats.surface_blocks = blocks.len();
+    stats.inside_blocks = inside.count();
+    let grid = Grid {
+        origin: lo,
+        step: voxel_mm,
+        block,
+    };
+    Ok((grid, blocks, stats))
+}
+
+/// Step 1: a 64³ grid over a cube around the axis point nearest the camera, as wide as the field
+/// of view at that distance; the box (mm, world frame) of the cells not far outside, with a
+/// voxel of margin.
+fn coarse_bounds(
+    field: &Field,
+    camera_centre_mm: Point3<f64>,
+    half_fov_tan: f64,
+    voxel_mm: f64,
+    stats: &mut CarveStats,
+) -> Result<(Point3<f64>, Point3<f64>)> {
     let axis_centre = Point3::new(0.0, camera_centre_mm.y, 0.0);
     let dist = (camera_centre_mm - axis_centre).norm();
     let half = 1.2 * dist * half_fov_tan;
@@ -96,13 +124,12 @@ pub fn carve(
     let cell0 = 2.0 * half / n0 as f64;
     let lo0 = axis_centre - Vector3::repeat(half);
     let reach0 = 0.9 * cell0 + 2.0 * voxel_mm;
-    bar.set_message("coarse carve");
+    let corner = |c: [usize; 3]| lo0 + cell0 * Vector3::from(c.map(|x| x as f64));
     let alive: Vec<[usize; 3]> = (0..n0 * n0 * n0)
         .into_par_iter()
         .filter_map(|idx| {
             let c = [idx % n0, (idx / n0) % n0, idx / (n0 * n0)];
-            let p =
-                lo0 + cell0 * Vector3::new(c[0] as f64 + 0.5, c[1] as f64 + 0.5, c[2] as f64 + 0.5);
+            let p = corner(c) + Vector3::repeat(0.5 * cell0);
             (field.value(&p, -reach0) > -reach0).then_some(c)
         })
         .collect();
@@ -110,163 +137,209 @@ pub fn carve(
     if alive.is_empty() {
         bail!("the silhouettes leave nothing: no point of space projects inside every mask (are the masks and the calibration of the same scan?)");
     }
-    let mut cmin = [usize::MAX; 3];
-    let mut cmax = [0usize; 3];
-    for c in &alive {
-        for a in 0..3 {
-            cmin[a] = cmin[a].min(c[a]);
-            cmax[a] = cmax[a].max(c[a]);
-        }
-    }
+    let cmin: [usize; 3] = std::array::from_fn(|a| alive.iter().map(|c| c[a]).min().unwrap_or(0));
+    let cmax: [usize; 3] = std::array::from_fn(|a| alive.iter().map(|c| c[a]).max().unwrap_or(0));
     if (0..3).any(|a| cmin[a] == 0 || cmax[a] == n0 - 1) {
         bail!("the hull is not bounded inside the camera's field of view: too few views from different directions, or masks that reach the image border");
     }
-    // 2. Fine grid over the surviving coarse cells, a whole number of blocks, with a voxel of
-    //    margin; the outermost grid points are forced outside.
-    let lo = lo0 + cell0 * Vector3::new(cmin[0] as f64, cmin[1] as f64, cmin[2] as f64)
-        - Vector3::repeat(voxel_mm);
-    let hi = lo0
-        + cell0
-            * Vector3::new(
-                cmax[0] as f64 + 1.0,
-                cmax[1] as f64 + 1.0,
-                cmax[2] as f64 + 1.0,
-            )
-        + Vector3::repeat(voxel_mm);
-    let nb: [usize; 3] =
-        std::array::from_fn(|a| ((hi[a] - lo[a]) / (voxel_mm * block as f64)).ceil() as usize);
-    let widest = nb.iter().map(|&n| n * block).max().unwrap_or(0);
-    if widest > MAX_VOXELS_PER_AXIS {
-        bail!(
-            "--voxel-mm {voxel_mm} is too fine for an object this size: {widest} voxels across, at \
-             most {MAX_VOXELS_PER_AXIS}; use at least {:.4} mm",
-            voxel_mm * widest as f64 / MAX_VOXELS_PER_AXIS as f64
-        );
+    let margin = Vector3::repeat(voxel_mm);
+    Ok((corner(cmin) - margin, corner(cmax.map(|x| x + 1)) + margin))
+}
+
+/// The fine grid: a whole number of blocks of `block`³ voxels from `lo` (mm, world frame).
+struct FineGrid {
+    lo: Point3<f64>,
+    voxel_mm: f64,
+    block: usize,
+    /// Blocks per axis.
+    nb: [usize; 3],
+    /// Voxels per axis.
+    dims: [usize; 3],
+}
+
+impl FineGrid {
+    /// The grid over [`lo`, `hi`], checked against [`MAX_VOXELS_PER_AXIS`] and the memory budget.
+    fn new(lo: Point3<f64>, hi: Point3<f64>, voxel_mm: f64, block: usize) -> Result<Self> {
+        let nb: [usize; 3] =
+            std::array::from_fn(|a| ((hi[a] - lo[a]) / (voxel_mm * block as f64)).ceil() as usize);
+        let widest = nb.iter().map(|&n| n * block).max().unwrap_or(0);
+        if widest > MAX_VOXELS_PER_AXIS {
+            bail!(
+                "--voxel-mm {voxel_mm} is too fine for an object this size: {widest} voxels \
+                 across, at most {MAX_VOXELS_PER_AXIS}; use at least {:.4} mm",
+                voxel_mm * widest as f64 / MAX_VOXELS_PER_AXIS as f64
+            );
+        }
+        // A class byte per block, and the corner values of the surface blocks (about the area
+        // of the grid's six faces in blocks).
+        let nb_max = *nb.iter().max().unwrap_or(&0) as u128;
+        crate::util::budget::check(
+            &format!("a {nb_max}³-block grid (--voxel-mm {voxel_mm})"),
+            nb.iter().map(|&n| n as u128).product::<u128>()
+                + 6 * nb_max * nb_max * 4 * ((block + 1) as u128).pow(3),
+            1,
+            "use a larger --voxel-mm",
+        )?;
+        Ok(Self {
+            lo,
+            voxel_mm,
+            block,
+            nb,
+            dims: nb.map(|n| n * block),
+        })
     }
-    // A class byte per block, and the corner values of the surface blocks (about the area of
-    // the grid's six faces in blocks).
-    let nb_max = *nb.iter().max().unwrap_or(&0) as u128;
-    crate::util::budget::check(
-        &format!("a {}³-block grid (--voxel-mm {voxel_mm})", nb_max),
-        nb.iter().map(|&n| n as u128).product::<u128>()
-            + 6 * nb_max * nb_max * 4 * ((block + 1) as u128).pow(3),
-        1,
-        "use a larger --voxel-mm",
-    )?;
-    let dims = nb.map(|n| n * block);
-    stats.dims = dims;
-    stats.origin = [lo.x, lo.y, lo.z];
-    let grid = Grid {
-        origin: lo,
-        step: voxel_mm,
-        block,
-    };
-    let nblocks = nb[0] * nb[1] * nb[2];
-    stats.blocks = nblocks;
-    let bsize = voxel_mm * block as f64;
-    let reach = 1.5 * (3f64.sqrt() / 2.0) * bsize + 2.0 * voxel_mm;
-    let point = |g: [usize; 3]| lo + voxel_mm * Vector3::new(g[0] as f64, g[1] as f64, g[2] as f64);
-    let on_border = |g: [usize; 3]| (0..3).any(|a| g[a] == 0 || g[a] == dims[a]);
-    bar.set_message("classify blocks");
-    // Classes: 0 outside, 1 inside, 2 surface.
-    let classes: Vec<u8> = (0..nblocks)
+
+    fn blocks(&self) -> usize {
+        self.nb[0] * self.nb[1] * self.nb[2]
+    }
+
+    /// Block coordinates of block index `b`.
+    fn block_coords(&self, b: usize) -> [usize; 3] {
+        let nb = self.nb;
+        [b % nb[0], (b / nb[0]) % nb[1], b / (nb[0] * nb[1])]
+    }
+
+    /// The position of grid point `g` (mm).
+    fn point(&self, g: [usize; 3]) -> Point3<f64> {
+        self.lo + self.voxel_mm * Vector3::from(g.map(|x| x as f64))
+    }
+
+    /// True for a grid point on the grid's outer faces (forced outside).
+    fn on_border(&self, g: [usize; 3]) -> bool {
+        (0..3).any(|a| g[a] == 0 || g[a] == self.dims[a])
+    }
+}
+
+/// What a block is, from the field at its centre.
+#[derive(Clone, Copy, PartialEq)]
+enum BlockClass {
+    Outside,
+    Inside,
+    Surface,
+}
+
+/// Step 2: every block's class; returns the inside and surface sets.
+fn classify_blocks(field: &Field, fine: &FineGrid) -> (BitSet, BitSet) {
+    let bsize = fine.voxel_mm * fine.block as f64;
+    let reach = 1.5 * (3f64.sqrt() / 2.0) * bsize + 2.0 * fine.voxel_mm;
+    let classes: Vec<BlockClass> = (0..fine.blocks())
         .into_par_iter()
         .map(|b| {
-            let c = [b % nb[0], (b / nb[0]) % nb[1], b / (nb[0] * nb[1])];
-            let centre =
-                lo + bsize * Vector3::new(c[0] as f64 + 0.5, c[1] as f64 + 0.5, c[2] as f64 + 0.5);
+            let c = fine.block_coords(b);
+            let centre = fine.point(c.map(|x| x * fine.block)) + Vector3::repeat(0.5 * bsize);
             let v = field.value(&centre, -reach);
-            let touches_grid_border = (0..3).any(|a| c[a] == 0 || c[a] == nb[a] - 1);
+            let touches_grid_border = (0..3).any(|a| c[a] == 0 || c[a] == fine.nb[a] - 1);
             if v < -reach {
-                0
+                BlockClass::Outside
             } else if v > reach && !touches_grid_border {
-                1
+                BlockClass::Inside
             } else {
-                2
+                BlockClass::Surface
             }
         })
         .collect();
-    stats.evaluated_points += nblocks;
-    let mut inside = BitSet::new(nblocks);
-    let mut surface = BitSet::new(nblocks);
+    let mut inside = BitSet::new(fine.blocks());
+    let mut surface = BitSet::new(fine.blocks());
     for (b, &c) in classes.iter().enumerate() {
         match c {
-            1 => inside.set(b),
-            2 => surface.set(b),
-            _ => {}
+            BlockClass::Inside => inside.set(b),
+            BlockClass::Surface => surface.set(b),
+            BlockClass::Outside => {}
         }
     }
-    drop(classes);
-    stats.inside_blocks = inside.count();
-    let n1 = block + 1;
-    let sample = |b: usize| -> FieldBlock {
-        let c = [b % nb[0], (b / nb[0]) % nb[1], b / (nb[0] * nb[1])];
-        let corner = c.map(|x| x * block);
-        let mut values = Vec::with_capacity(n1 * n1 * n1);
-        for k in 0..n1 {
-            for j in 0..n1 {
-                for i in 0..n1 {
-                    let g = [corner[0] + i, corner[1] + j, corner[2] + k];
-                    let v = field.value(&point(g), -2.0 * voxel_mm);
-                    values.push(if on_border(g) {
-                        v.min(-0.01 * voxel_mm)
-                    } else {
-                        v
-                    } as f32);
-                }
+    (inside, surface)
+}
+
+/// The field at every corner of block `b` (grid-border points forced outside).
+fn sample_block(field: &Field, fine: &FineGrid, b: usize) -> FieldBlock {
+    let n1 = fine.block + 1;
+    let corner = fine.block_coords(b).map(|x| x * fine.block);
+    let mut values = Vec::with_capacity(n1 * n1 * n1);
+    for k in 0..n1 {
+        for j in 0..n1 {
+            for i in 0..n1 {
+                let g = [corner[0] + i, corner[1] + j, corner[2] + k];
+                let v = field.value(&fine.point(g), -2.0 * fine.voxel_mm);
+                let v = if fine.on_border(g) {
+                    v.min(-0.01 * fine.voxel_mm)
+                } else {
+                    v
+                };
+                values.push(v as f32);
             }
         }
-        FieldBlock { corner, values }
-    };
+    }
+    FieldBlock { corner, values }
+}
+
+/// Step 3: samples the surface blocks, promoting to the surface every block whose class a shared
+/// sample contradicts, until none does; blocks in a deterministic order.
+fn sample_surface(
+    field: &Field,
+    fine: &FineGrid,
+    inside: &mut BitSet,
+    surface: &mut BitSet,
+    stats: &mut CarveStats,
+    bar: &ProgressBar,
+) -> Vec<FieldBlock> {
+    let n1 = fine.block + 1;
     let mut todo: Vec<usize> = surface.iter().collect();
     let mut blocks: Vec<FieldBlock> = Vec::new();
-    let initial = todo.len();
-    bar.set_length(initial as u64);
+    bar.set_length(todo.len() as u64);
     bar.set_position(0);
     bar.set_message("sample surface blocks");
     while !todo.is_empty() {
         let sampled: Vec<FieldBlock> = todo
             .par_iter()
             .map(|&b| {
-                let s = sample(b);
+                let s = sample_block(field, fine, b);
                 bar.inc(1);
                 s
             })
             .collect();
         stats.evaluated_points += sampled.len() * n1 * n1 * n1;
-        // Blocks whose class disagrees with a sample they share.
-        let mut promote = Vec::new();
-        for blk in &sampled {
-            let bc = blk.corner.map(|x| x / block);
-            for k in 0..n1 {
-                for j in 0..n1 {
-                    for i in 0..n1 {
-                        let l = [i, j, k];
-                        if l.iter().all(|&x| x > 0 && x < block) {
-                            continue;
-                        }
-                        let positive = blk.values[i + n1 * (j + n1 * k)] > 0.0;
-                        for_each_block_sharing(l, bc, block, nb, |nbk| {
-                            if !surface.get(nbk) && inside.get(nbk) != positive {
-                                surface.set(nbk);
-                                inside.clear(nbk);
-                                promote.push(nbk);
-                            }
-                        });
-                    }
-                }
-            }
-        }
+        let promote = contradicted_blocks(&sampled, fine, inside, surface);
         blocks.extend(sampled);
         stats.promoted_blocks += promote.len();
         bar.inc_length(promote.len() as u64);
         todo = promote;
     }
-    stats.surface_blocks = blocks.len();
-    stats.inside_blocks = inside.count();
-    // Deterministic order whatever the promotion rounds were.
     blocks.sort_unstable_by_key(|b| (b.corner[2], b.corner[1], b.corner[0]));
-    Ok((grid, blocks, stats))
+    blocks
+}
+
+/// Blocks (moved to the surface set here) whose class disagrees with a sample of `sampled` on a
+/// face, edge or corner they share.
+fn contradicted_blocks(
+    sampled: &[FieldBlock],
+    fine: &FineGrid,
+    inside: &mut BitSet,
+    surface: &mut BitSet,
+) -> Vec<usize> {
+    let (block, n1) = (fine.block, fine.block + 1);
+    let mut promote = Vec::new();
+    for blk in sampled {
+        let bc = blk.corner.map(|x| x / block);
+        for k in 0..n1 {
+            for j in 0..n1 {
+                for i in 0..n1 {
+                    let l = [i, j, k];
+                    if l.iter().all(|&x| x > 0 && x < block) {
+                        continue;
+                    }
+                    let positive = blk.values[i + n1 * (j + n1 * k)] > 0.0;
+                    for_each_block_sharing(l, bc, block, fine.nb, |nbk| {
+                        if !surface.get(nbk) && inside.get(nbk) != positive {
+                            surface.set(nbk);
+                            inside.clear(nbk);
+                            promote.push(nbk);
+                        }
+                    });
+                }
+            }
+        }
+    }
+    promote
 }
 
 /// Calls `f` with every other block (index) containing the sample at local position `l` of the

@@ -218,19 +218,59 @@ fn import_into(
     mut progress: impl FnMut(usize),
 ) -> Result<ImportReport> {
     let f = DrtFile::open(path)?;
-    let (w, h) = (f.width, f.height);
-    let kind = camera.unwrap_or(
-        if (w, h) == (1920, 1080) || !f.file.link_exists("ray_dir") {
-            DrtCamera::Redmi
-        } else {
-            DrtCamera::PointGrey
-        },
-    );
+    let kind = camera.unwrap_or_else(|| infer_camera(&f));
     if kind == DrtCamera::PointGrey {
+        let (w, h) = (f.width, f.height);
         for key in ["ray_origin", "ray_dir"] {
             f.expect(key, &[&[DRT_VIEWS, w * h, 3], &[DRT_VIEWS, h, w, 3]])?;
         }
     }
+    let cam = read_intrinsics(&f)?;
+    let decoded = out.join("decoded");
+    std::fs::create_dir_all(&decoded)
+        .with_context(|| format!("cannot create {}", decoded.display()))?;
+    let mut fit = PlaneSums::default();
+    let mut views = Vec::with_capacity(DRT_VIEWS);
+    for v in 0..DRT_VIEWS {
+        views.push(import_view(&f, v, kind, &cam, &decoded, &mut fit)?);
+        progress(v);
+    }
+    if fit.n < 3.0 {
+        bail!("{}: no object pixel has a monitor point (screen_position is all zero inside the masks)", path.display());
+    }
+    let screen = virtual_screen(&decoded, fit.n, &fit.sum, &fit.outer)?;
+    let plane_rms_mm = plane_rms(&decoded, &screen)?;
+    let poses = views.iter().map(|v| v.pose).collect();
+    imported_scan(out, ior, cam, screen.clone(), poses)?.save()?;
+    let summaries: Vec<ViewSummary> = views.iter().map(|v| v.summary.clone()).collect();
+    write_summary(
+        &decoded,
+        &FixedPoint::for_screen(screen.width_px, screen.height_px),
+        &summaries,
+    )?;
+    Ok(ImportReport {
+        camera: kind,
+        width: f.width as u32,
+        height: f.height as u32,
+        object_pixels: summaries.iter().map(|s| s.object_pixels).sum(),
+        rays: views.iter().map(|v| v.rays).sum(),
+        plane_rms_mm,
+        max_origin_offset_mm: views.iter().map(|v| v.max_origin).fold(0.0, f64::max),
+    })
+}
+
+/// The camera of a file without `--camera`: the Redmi's size, or no per-pixel rays, means Redmi.
+fn infer_camera(f: &DrtFile) -> DrtCamera {
+    if (f.width, f.height) == (1920, 1080) || !f.file.link_exists("ray_dir") {
+        DrtCamera::Redmi
+    } else {
+        DrtCamera::PointGrey
+    }
+}
+
+/// The pinhole camera of `cam_k` (no distortion), checked to be of the form [fx 0 cx; 0 fy cy;
+/// 0 0 1].
+fn read_intrinsics(f: &DrtFile) -> Result<Camera> {
     let k: Vec<f64> = f
         .file
         .dataset("cam_k")?
@@ -239,8 +279,8 @@ fn import_into(
         .copied()
         .collect();
     let cam = Camera {
-        width: w as u32,
-        height: h as u32,
+        width: f.width as u32,
+        height: f.height as u32,
         fx: k[0],
         fy: k[4],
         cx: k[2],
@@ -250,96 +290,123 @@ fn import_into(
     if !(cam.fx > 0.0 && cam.fy > 0.0 && k[1] == 0.0 && k[3] == 0.0 && k[6..] == [0.0, 0.0, 1.0]) {
         bail!(
             "{}: 'cam_k' is not of the form [fx 0 cx; 0 fy cy; 0 0 1]: {k:?}",
-            path.display()
+            f.path.display()
         );
     }
-    let decoded = out.join("decoded");
-    std::fs::create_dir_all(&decoded)
-        .with_context(|| format!("cannot create {}", decoded.display()))?;
+    Ok(cam)
+}
 
-    let mut poses = Vec::with_capacity(DRT_VIEWS);
-    let mut summaries = Vec::with_capacity(DRT_VIEWS);
-    let (mut object_pixels, mut rays_total, mut max_origin) = (0usize, 0usize, 0.0f64);
-    // Plane fit of the monitor points (camera frame): count, sum, sum of outer products.
-    let (mut n, mut sum, mut outer) = (0.0, Vector3::zeros(), Matrix3::zeros());
-    for v in 0..DRT_VIEWS {
-        let pose = rigid(&f.matrix4(v)?).with_context(|| {
-            format!(
-                "{}: cam_proj[{v}] is not a rigid world → camera transform",
-                path.display()
-            )
-        })?;
-        let mask: Vec<u8> = f
-            .file
-            .dataset("mask")?
-            .read_slice_2d::<f64, _>(ndarray::s![v, .., ..])?
-            .iter()
-            .map(|&m| if m > 0.0 { 255 } else { 0 })
-            .collect();
-        let targets = f.pixel_rows("screen_position", v)?;
-        let (origins, dirs) = if kind == DrtCamera::PointGrey {
-            (
-                Some(f.pixel_rows("ray_origin", v)?),
-                Some(f.pixel_rows("ray_dir", v)?),
-            )
-        } else {
-            (None, None)
-        };
-        let eye = pose.inverse() * Point3::origin();
-        let mut rays = Vec::new();
-        let mut objects = 0;
-        for (i, t) in targets.iter().enumerate() {
-            if mask[i] == 0 {
-                continue;
-            }
-            objects += 1;
-            if t.iter().all(|&c| c == 0.0) || t.iter().any(|c| !c.is_finite()) {
-                continue;
-            }
-            let dir = match &dirs {
-                Some(d) => {
-                    let o = origins.as_ref().expect("read with the directions")[i];
-                    max_origin = max_origin.max((Point3::from(o) - eye).norm());
-                    pose.rotation * Vector3::from(d[i])
-                }
-                None => cam
-                    .pixel_ray((i % w) as f64, (i / w) as f64)
-                    .context("pixel ray")?,
-            };
-            let Some(dir) = dir.try_normalize(1e-12) else {
-                continue;
-            };
-            let target = pose * Point3::from(*t);
-            n += 1.0;
-            sum += target.coords;
-            outer += target.coords * target.coords.transpose();
-            rays.push(PixelRay {
-                pixel: i as u32,
-                dir,
-                target,
-            });
+/// Running sums of a least-squares plane fit of the monitor points (camera frame, mm).
+#[derive(Default)]
+struct PlaneSums {
+    n: f64,
+    sum: Vector3<f64>,
+    outer: Matrix3<f64>,
+}
+
+impl PlaneSums {
+    fn add(&mut self, p: &Point3<f64>) {
+        self.n += 1.0;
+        self.sum += p.coords;
+        self.outer += p.coords * p.coords.transpose();
+    }
+}
+
+/// One view as imported.
+struct ImportedView {
+    /// World → camera.
+    pose: Isometry3<f64>,
+    summary: ViewSummary,
+    rays: usize,
+    /// Largest distance of a ray origin from the camera centre, mm (Point Grey files).
+    max_origin: f64,
+}
+
+/// Reads view `v`, writes its mask and rays into `decoded`, and adds its monitor points to `fit`.
+fn import_view(
+    f: &DrtFile,
+    v: usize,
+    kind: DrtCamera,
+    cam: &Camera,
+    decoded: &Path,
+    fit: &mut PlaneSums,
+) -> Result<ImportedView> {
+    let pose = rigid(&f.matrix4(v)?).with_context(|| {
+        format!(
+            "{}: cam_proj[{v}] is not a rigid world → camera transform",
+            f.path.display()
+        )
+    })?;
+    let mask: Vec<u8> = f
+        .file
+        .dataset("mask")?
+        .read_slice_2d::<f64, _>(ndarray::s![v, .., ..])?
+        .iter()
+        .map(|&m| if m > 0.0 { 255 } else { 0 })
+        .collect();
+    let targets = f.pixel_rows("screen_position", v)?;
+    let given = if kind == DrtCamera::PointGrey {
+        Some((f.pixel_rows("ray_origin", v)?, f.pixel_rows("ray_dir", v)?))
+    } else {
+        None
+    };
+    let eye = pose.inverse() * Point3::origin();
+    let (mut rays, mut objects, mut max_origin) = (Vec::new(), 0, 0.0f64);
+    for (i, t) in targets.iter().enumerate() {
+        if mask[i] == 0 {
+            continue;
         }
-        write_pixels(&mask_path(&decoded, v), w as u32, h as u32, &mask)?;
-        write_rays(&decoded, v, &rays)?;
-        object_pixels += objects;
-        rays_total += rays.len();
-        summaries.push(ViewSummary {
-            view: v,
-            object_pixels: objects,
-            decoded_share: rays.len() as f64 / objects.max(1) as f64,
-            complete_share: 1.0,
-            white_drop: None,
-            warning: None,
+        objects += 1;
+        if t.iter().all(|&c| c == 0.0) || t.iter().any(|c| !c.is_finite()) {
+            continue;
+        }
+        let dir = match &given {
+            Some((origins, dirs)) => {
+                max_origin = max_origin.max((Point3::from(origins[i]) - eye).norm());
+                pose.rotation * Vector3::from(dirs[i])
+            }
+            None => cam
+                .pixel_ray((i % f.width) as f64, (i / f.width) as f64)
+                .context("pixel ray")?,
+        };
+        let Some(dir) = dir.try_normalize(1e-12) else {
+            continue;
+        };
+        let target = pose * Point3::from(*t);
+        fit.add(&target);
+        rays.push(PixelRay {
+            pixel: i as u32,
+            dir,
+            target,
         });
-        poses.push(pose);
-        progress(v);
     }
-    if n < 3.0 {
-        bail!("{}: no object pixel has a monitor point (screen_position is all zero inside the masks)", path.display());
-    }
-    let screen = virtual_screen(&decoded, n, &sum, &outer)?;
-    let plane_rms_mm = plane_rms(&decoded, &screen)?;
+    write_pixels(&mask_path(decoded, v), cam.width, cam.height, &mask)?;
+    write_rays(decoded, v, &rays)?;
+    let summary = ViewSummary {
+        view: v,
+        object_pixels: objects,
+        decoded_share: rays.len() as f64 / objects.max(1) as f64,
+        complete_share: 1.0,
+        white_drop: None,
+        warning: None,
+    };
+    Ok(ImportedView {
+        pose,
+        summary,
+        rays: rays.len(),
+        max_origin,
+    })
+}
 
+/// The scan of an import: the views' poses, the turntable axis they turn about, and the angles
+/// about it.
+fn imported_scan(
+    out: &Path,
+    ior: f64,
+    camera: Camera,
+    screen: Screen,
+    poses: Vec<Isometry3<f64>>,
+) -> Result<Scan> {
     let (axis_dir, axis_point) = axis_of_motions(&poses, None)?;
     let angles_deg: Vec<f64> = poses
         .iter()
@@ -350,49 +417,35 @@ fn import_into(
                 .rem_euclid(360.0)
         })
         .collect();
-    let scan = Scan {
-        dir: out.to_path_buf(),
-        config: ScanConfig {
-            ior,
-            calibration: CalibrationFiles {
-                camera: "camera.yml".into(),
-                screen: "screen.yml".into(),
-                turntable: "turntable.yml".into(),
-                poses: Some("poses.yml".into()),
-            },
-            views: Views {
-                angles_deg: angles_deg.clone(),
-            },
-            patterns: Patterns {
-                kind: PatternKind::Graycode,
-                width: screen.width_px,
-                height: screen.height_px,
-                phase_shift: None,
-            },
+    let config = ScanConfig {
+        ior,
+        calibration: CalibrationFiles {
+            camera: "camera.yml".into(),
+            screen: "screen.yml".into(),
+            turntable: "turntable.yml".into(),
+            poses: Some("poses.yml".into()),
         },
-        camera: cam,
-        screen: screen.clone(),
+        views: Views {
+            angles_deg: angles_deg.clone(),
+        },
+        patterns: Patterns {
+            kind: PatternKind::Graycode,
+            width: screen.width_px,
+            height: screen.height_px,
+            phase_shift: None,
+        },
+    };
+    Ok(Scan {
+        dir: out.to_path_buf(),
+        config,
+        camera,
+        screen,
         turntable: Turntable {
             axis_point,
             axis_dir,
             angles_deg,
         },
         poses: Some(poses),
-    };
-    scan.save()?;
-    write_summary(
-        &decoded,
-        &FixedPoint::for_screen(screen.width_px, screen.height_px),
-        &summaries,
-    )?;
-    Ok(ImportReport {
-        camera: kind,
-        width: w as u32,
-        height: h as u32,
-        object_pixels,
-        rays: rays_total,
-        plane_rms_mm,
-        max_origin_offset_mm: max_origin,
     })
 }
 

@@ -146,35 +146,70 @@ fn simulate_into(
     dir: &Path,
     out: &Path,
     o: &SimulateOptions,
-    mut progress: impl FnMut(usize),
+    progress: impl FnMut(usize),
 ) -> Result<SimulateReport> {
     let t0 = Instant::now();
     ensure_valid(mesh).context("the mesh to simulate is not a valid closed surface")?;
-    let (lo, hi) = mesh.bbox().expect("a valid mesh has vertices");
-    let mut placed = mesh.clone();
-    placed.scale_translate(1.0, -(lo.coords + hi.coords) / 2.0);
-    let radius_xz = placed
-        .positions
-        .iter()
-        .map(|p| p.x.hypot(p.z))
-        .fold(0.0, f64::max);
-    let bound_radius = placed
-        .positions
-        .iter()
-        .map(|p| p.coords.norm())
-        .fold(0.0, f64::max);
-    let height_y = hi.y - lo.y;
-    let d = o.camera_distance_mm;
-    if bound_radius * 1.2 >= d {
-        bail!("the object (radius {bound_radius:.1} mm) does not fit in front of the camera at {d} mm; raise --camera-distance-mm");
-    }
-    if o.screen_distance_mm <= bound_radius {
-        bail!("the monitor ({} mm behind the axis) would cut the object (radius {bound_radius:.1} mm)", o.screen_distance_mm);
-    }
+    let object = Placed::new(mesh, o)?;
+    let scan = rig_scan(dir, o, &object);
+    std::fs::create_dir_all(dir.join("truth"))
+        .with_context(|| format!("cannot create {}", dir.display()))?;
+    scan.save()?;
+    write_mesh(&dir.join("ground_truth.ply"), &object.mesh)?;
+    let mut report = render_views(&scan, &object, out, o, progress)?;
+    report.seconds = t0.elapsed().as_secs_f64();
+    crate::util::atomic::write_atomic(&dir.join("truth").join("summary.json"), |w| {
+        serde_json::to_writer_pretty(&mut *w, &report)?;
+        Ok(())
+    })?;
+    Ok(report)
+}
 
-    // Camera: the object fills `fill` of the image height, and fits the width.
-    let f = (o.fill * o.height as f64 * d / height_y)
-        .min(0.9 * o.width as f64 * (d - radius_xz) / (2.0 * radius_xz));
+/// The object centred on the turntable axis (its bounding box centred on the origin), with the
+/// radii that place the rig around it (mm).
+struct Placed {
+    mesh: TriMesh,
+    /// Largest distance from the axis.
+    radius_xz: f64,
+    /// Largest distance from the origin.
+    bound_radius: f64,
+    /// Height along the axis.
+    height_y: f64,
+}
+
+impl Placed {
+    /// Places `mesh`; an error when it does not fit between the camera and the monitor.
+    fn new(mesh: &TriMesh, o: &SimulateOptions) -> Result<Self> {
+        let (lo, hi) = mesh.bbox().expect("a valid mesh has vertices");
+        let mut placed = mesh.clone();
+        placed.scale_translate(1.0, -(lo.coords + hi.coords) / 2.0);
+        let farthest = |f: fn(&Point3<f64>) -> f64| placed.positions.iter().map(f).fold(0.0, f64::max);
+        let radius_xz = farthest(|p| p.x.hypot(p.z));
+        let bound_radius = farthest(|p| p.coords.norm());
+        let d = o.camera_distance_mm;
+        if bound_radius * 1.2 >= d {
+            bail!("the object (radius {bound_radius:.1} mm) does not fit in front of the camera at {d} mm; raise --camera-distance-mm");
+        }
+        if o.screen_distance_mm <= bound_radius {
+            bail!("the monitor ({} mm behind the axis) would cut the object (radius {bound_radius:.1} mm)", o.screen_distance_mm);
+        }
+        Ok(Self {
+            mesh: placed,
+            radius_xz,
+            bound_radius,
+            height_y: hi.y - lo.y,
+        })
+    }
+}
+
+/// A DRT-like rig around `object`: the camera at `camera_distance_mm` from the axis with the
+/// object filling `fill` of the image height (and fitting its width), the monitor
+/// `screen_distance_mm` behind the axis, centred on the optical axis and facing the camera, the
+/// turntable axis vertical (world +y = camera −y), `views` even angles.
+fn rig_scan(dir: &Path, o: &SimulateOptions, object: &Placed) -> Scan {
+    let d = o.camera_distance_mm;
+    let f = (o.fill * o.height as f64 * d / object.height_y)
+        .min(0.9 * o.width as f64 * (d - object.radius_xz) / (2.0 * object.radius_xz));
     let camera = Camera {
         width: o.width,
         height: o.height,
@@ -184,86 +219,117 @@ fn simulate_into(
         cy: (o.height as f64 - 1.0) / 2.0,
         dist: o.distortion,
     };
-    // Monitor: centred on the optical axis, facing the camera, rows downwards like the image.
-    let z = d + o.screen_distance_mm;
+    let centre = Translation3::new(
+        -(o.screen_width as f64 - 1.0) / 2.0 * o.pitch_mm,
+        -(o.screen_height as f64 - 1.0) / 2.0 * o.pitch_mm,
+        d + o.screen_distance_mm,
+    );
     let screen = Screen {
         width_px: o.screen_width,
         height_px: o.screen_height,
         pitch_mm: o.pitch_mm,
-        pose: Isometry3::from_parts(
-            Translation3::new(
-                -(o.screen_width as f64 - 1.0) / 2.0 * o.pitch_mm,
-                -(o.screen_height as f64 - 1.0) / 2.0 * o.pitch_mm,
-                z,
-            ),
-            UnitQuaternion::identity(),
-        ),
+        pose: Isometry3::from_parts(centre, UnitQuaternion::identity()),
     };
-    // Turntable: vertical axis (world +y up = camera −y) through (0, 0, d).
     let turntable = Turntable {
         axis_point: Point3::new(0.0, 0.0, d),
         axis_dir: -Vector3::y_axis(),
         angles_deg: Turntable::even_angles(o.views),
     };
-    let scan = Scan {
-        dir: dir.to_path_buf(),
-        config: ScanConfig {
-            ior: o.ior,
-            calibration: CalibrationFiles {
-                camera: "camera.yml".into(),
-                screen: "screen.yml".into(),
-                turntable: "turntable.yml".into(),
-                poses: None,
-            },
-            views: Views {
-                angles_deg: turntable.angles_deg.clone(),
-            },
-            patterns: Patterns {
-                kind: PatternKind::Graycode,
-                width: o.screen_width,
-                height: o.screen_height,
-                phase_shift: o.phase_shift,
-            },
+    let config = ScanConfig {
+        ior: o.ior,
+        calibration: CalibrationFiles {
+            camera: "camera.yml".into(),
+            screen: "screen.yml".into(),
+            turntable: "turntable.yml".into(),
+            poses: None,
         },
+        views: Views {
+            angles_deg: turntable.angles_deg.clone(),
+        },
+        patterns: Patterns {
+            kind: PatternKind::Graycode,
+            width: o.screen_width,
+            height: o.screen_height,
+            phase_shift: o.phase_shift,
+        },
+    };
+    Scan {
+        dir: dir.to_path_buf(),
+        config,
         camera,
         screen,
         turntable,
         poses: None,
-    };
-    let truth = dir.join("truth");
-    let mut dirs = vec![truth.clone()];
-    if o.decoded_only {
-        dirs.push(dir.join("decoded"));
     }
-    for dir in &dirs {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    }
-    scan.save()?;
-    write_mesh(&dir.join("ground_truth.ply"), &placed)?;
+}
 
-    let surface = MeshSurface::new(&placed, o.normals)?;
+/// Traces the background and every view, and writes what the options ask for: captures or the
+/// exact decoded form, the truth images, the calibration images.
+fn render_views(
+    scan: &Scan,
+    object: &Placed,
+    out: &Path,
+    o: &SimulateOptions,
+    mut progress: impl FnMut(usize),
+) -> Result<SimulateReport> {
+    let surface = MeshSurface::new(&object.mesh, o.normals)?;
     let code = scan.graycode();
-    let settings = PathSettings {
-        ior: o.ior,
-        ior_air: IOR_AIR,
-        max_refractions: o.max_refractions,
-    };
-    let mut tally = Tally::default();
-    let mut decoded = Vec::new();
     let fixed = FixedPoint::for_screen(o.screen_width, o.screen_height);
-    let poses = scan.view_poses();
     let setup = |pose: Isometry3<f64>, surface| ViewSetup {
         camera: &scan.camera,
         pose,
         screen: &scan.screen,
         surface,
         bound_centre: Point3::origin(),
-        bound_radius: bound_radius * (1.0 + 1e-9),
-        settings,
+        bound_radius: object.bound_radius * (1.0 + 1e-9),
+        settings: PathSettings {
+            ior: o.ior,
+            ior_air: IOR_AIR,
+            max_refractions: o.max_refractions,
+        },
         fresnel: o.fresnel,
     };
-    // Background: the monitor without the object (the same for every view).
-    let background = trace_view(&setup(poses[0], None), o.spp)?;
+    let poses = scan.view_poses();
+    let direct_footprint_px = render_background(scan, &setup(poses[0], None), out, o, &code)?;
+    let (truth, decoded_dir) = (scan.dir.join("truth"), scan.dir.join("decoded"));
+    let (mut tally, mut decoded) = (Tally::default(), Vec::new());
+    if o.decoded_only {
+        std::fs::create_dir_all(&decoded_dir)
+            .with_context(|| format!("cannot create {}", decoded_dir.display()))?;
+    }
+    for (k, pose) in poses.iter().enumerate() {
+        let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
+        tally.add(&samples, o.spp);
+        write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
+        if o.decoded_only {
+            let cam = &scan.camera;
+            decoded.push(write_exact_decoded(&decoded_dir, k, &samples, cam, o.spp, &fixed)?);
+        } else {
+            let seed = o.seed.wrapping_add(k as u64);
+            write_captures(&scan.view_dir(k), &samples, o, &code, seed)?;
+        }
+        progress(k);
+    }
+    if o.decoded_only {
+        crate::scan::decoded::write_summary(&decoded_dir, &fixed, &decoded)?;
+    }
+    let mut report = tally.report(o.views);
+    report.direct_footprint_px = direct_footprint_px;
+    report.fixed_point_scale = fixed.scale;
+    Ok(report)
+}
+
+/// The monitor without the object (the same for every view): checked to be seen, written as the
+/// background capture (and the calibration images) when asked; returns the median direct
+/// footprint of a camera pixel on the monitor, monitor pixels.
+fn render_background(
+    scan: &Scan,
+    setup: &ViewSetup,
+    out: &Path,
+    o: &SimulateOptions,
+    code: &GrayCode,
+) -> Result<f64> {
+    let background = trace_view(setup, o.spp)?;
     let seen = background
         .iter()
         .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
@@ -274,49 +340,13 @@ fn simulate_into(
             100.0 * seen as f64 / background.len() as f64
         );
     }
-    let direct_footprint_px = median(footprints(&background, o.spp, |_| true));
     if !o.decoded_only || o.calibration_images {
-        write_captures(&scan.background_dir(), &background, o, &code, o.seed ^ 0xb6)?;
+        write_captures(&scan.background_dir(), &background, o, code, o.seed ^ 0xb6)?;
     }
     if o.calibration_images {
-        calibration::write_calibration_images(&scan, out, o)?;
+        calibration::write_calibration_images(scan, out, o)?;
     }
-    for (k, pose) in poses.iter().enumerate() {
-        let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
-        tally.add(&samples, o.spp);
-        write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
-        if o.decoded_only {
-            decoded.push(write_exact_decoded(
-                &dir.join("decoded"),
-                k,
-                &samples,
-                &scan.camera,
-                o.spp,
-                &fixed,
-            )?);
-        } else {
-            write_captures(
-                &scan.view_dir(k),
-                &samples,
-                o,
-                &code,
-                o.seed.wrapping_add(k as u64),
-            )?;
-        }
-        progress(k);
-    }
-    if o.decoded_only {
-        crate::scan::decoded::write_summary(&dir.join("decoded"), &fixed, &decoded)?;
-    }
-    let mut report = tally.report(o.views);
-    report.direct_footprint_px = direct_footprint_px;
-    report.fixed_point_scale = fixed.scale;
-    report.seconds = t0.elapsed().as_secs_f64();
-    crate::util::atomic::write_atomic(&truth.join("summary.json"), |w| {
-        serde_json::to_writer_pretty(&mut *w, &report)?;
-        Ok(())
-    })?;
-    Ok(report)
+    Ok(median(footprints(&background, o.spp, |_| true)))
 }
 
 /// The most turntable views a simulated scan may have (0.1° steps).
