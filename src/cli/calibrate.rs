@@ -2,9 +2,9 @@
 
 use std::path::PathBuf;
 
+use super::common::bar;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
-use super::common::bar;
 
 use crate::calibrate::board::{read_images, Board};
 use crate::calibrate::camera::{calibrate_camera, CameraOptions};

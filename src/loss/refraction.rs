@@ -157,59 +157,94 @@ pub fn pixel_gradient_into(
     prims: &[u32],
     out: &mut PixelGradient,
 ) -> Result<(), DropReason> {
-    // Forward.
     if prims.len() > MAX_TRAIL {
         return Err(DropReason::RefractionCount);
     }
     let mut chain: ArrayVec<Interface, MAX_TRAIL> = ArrayVec::new();
     let (mut o, mut d) = (view.eye, px.dir);
     for &prim in prims {
-        let verts = mesh.faces[prim as usize];
-        let tri = verts.map(|v| mesh.positions[v as usize]);
-        let hit = plane_hit(&o, &d, &tri).ok_or(DropReason::Grazing)?;
-        let entering = hit.den < 0.0;
-        let (eta, sign) = if entering {
-            (s.ior_air / s.ior, 1.0)
-        } else {
-            (s.ior / s.ior_air, -1.0)
-        };
-        let (mut bary, mut interp_norm, mut vnormals) = ((0.0, 0.0), 0.0, [V3::zeros(); 3]);
-        let outward = match mesh.vertex_normals {
-            None => hit.n / hit.n.norm(),
-            Some(vn) => {
-                bary = barycentric(&hit.point, &tri, &hit.n);
-                vnormals = verts.map(|v| vn[v as usize]);
-                let m = vnormals[0] * (1.0 - bary.0 - bary.1)
-                    + vnormals[1] * bary.0
-                    + vnormals[2] * bary.1;
-                interp_norm = m.norm();
-                m / interp_norm
-            }
-        };
-        let n = outward * sign;
-        let sn = snell(&d, &n, eta).map_err(|e| match e {
-            SnellFailure::Grazing => DropReason::Grazing,
-            SnellFailure::Critical => DropReason::NearCritical,
-        })?;
-        let out_norm = sn.out.norm();
-        let next = sn.out / out_norm;
-        chain.push(Interface {
-            tri,
-            verts,
-            dir_in: d,
-            hit,
-            entering,
-            bary,
-            interp_norm,
-            vnormals,
-            n,
-            snell: sn,
-            out_norm,
-        });
-        o = hit.point;
-        d = next;
+        let it = refract_at(mesh, s, &o, &d, prim)?;
+        (o, d) = (it.hit.point, it.snell.out / it.out_norm);
+        chain.push(it);
     }
-    // Residual at the exit ray (o, d).
+    let (loss, mut gp, mut gd) = exit_residual(s, view, px, &o, &d)?;
+    out.grad.clear();
+    out.ngrad.clear();
+    for it in chain.iter().rev() {
+        (gp, gd) = interface_adjoint(mesh, it, &gp, &gd, out);
+    }
+    let finite = loss.is_finite()
+        && out
+            .grad
+            .iter()
+            .chain(out.ngrad.iter())
+            .all(|(_, g)| g.iter().all(|x| x.is_finite()));
+    if !finite {
+        return Err(DropReason::NonFinite);
+    }
+    out.loss = loss;
+    Ok(())
+}
+
+/// Forward through one interface: the ray (o, d) meets triangle `prim`'s plane and refracts
+/// (face or interpolated vertex normal); everything the backward pass needs.
+fn refract_at(
+    mesh: &MeshState,
+    s: &RefractionSettings,
+    o: &Point3<f64>,
+    d: &V3,
+    prim: u32,
+) -> Result<Interface, DropReason> {
+    let verts = mesh.faces[prim as usize];
+    let tri = verts.map(|v| mesh.positions[v as usize]);
+    let hit = plane_hit(o, d, &tri).ok_or(DropReason::Grazing)?;
+    let entering = hit.den < 0.0;
+    let (eta, sign) = if entering {
+        (s.ior_air / s.ior, 1.0)
+    } else {
+        (s.ior / s.ior_air, -1.0)
+    };
+    let (mut bary, mut interp_norm, mut vnormals) = ((0.0, 0.0), 0.0, [V3::zeros(); 3]);
+    let outward = match mesh.vertex_normals {
+        None => hit.n / hit.n.norm(),
+        Some(vn) => {
+            bary = barycentric(&hit.point, &tri, &hit.n);
+            vnormals = verts.map(|v| vn[v as usize]);
+            let m =
+                vnormals[0] * (1.0 - bary.0 - bary.1) + vnormals[1] * bary.0 + vnormals[2] * bary.1;
+            interp_norm = m.norm();
+            m / interp_norm
+        }
+    };
+    let n = outward * sign;
+    let sn = snell(d, &n, eta).map_err(|e| match e {
+        SnellFailure::Grazing => DropReason::Grazing,
+        SnellFailure::Critical => DropReason::NearCritical,
+    })?;
+    Ok(Interface {
+        tri,
+        verts,
+        dir_in: *d,
+        hit,
+        entering,
+        bary,
+        interp_norm,
+        vnormals,
+        n,
+        out_norm: sn.out.norm(),
+        snell: sn,
+    })
+}
+
+/// The residual of the exit ray (o, d) against the pixel's target, weighted: the loss and its
+/// gradient with respect to o and d.
+fn exit_residual(
+    s: &RefractionSettings,
+    view: &ViewTargets,
+    px: &PixelTarget,
+    o: &Point3<f64>,
+    d: &V3,
+) -> Result<(f64, V3, V3), DropReason> {
     let (mut gp, mut gd) = (V3::zeros(), V3::zeros());
     let loss = match s.form {
         ResidualForm::Screen => {
@@ -224,7 +259,7 @@ pub fn pixel_gradient_into(
             // Q′ = o + s d, s = ((m − o)·ν)/(d·ν).
             gp += gq;
             gd += gq * sdist;
-            let gs = gq.dot(&d);
+            let gs = gq.dot(d);
             gp -= view.monitor_normal * (gs / dn);
             gd -= view.monitor_normal * (gs * sdist / dn);
             loss * px.weight
@@ -237,61 +272,59 @@ pub fn pixel_gradient_into(
             loss * px.weight
         }
     };
-    // Backward through the interfaces.
-    out.grad.clear();
-    out.ngrad.clear();
-    let (grad, ngrad) = (&mut out.grad, &mut out.ngrad);
-    for it in chain.iter().rev() {
-        // d_next = out / |out|.
-        let gout = normalize_adjoint(&(it.snell.out / it.out_norm), it.out_norm, &gd);
-        let (mut gdin, mut gn) = (V3::zeros(), V3::zeros());
-        snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
-        let g_outward = if it.entering { gn } else { -gn };
-        let mut gtri = [V3::zeros(); 3];
-        let mut gnormal = V3::zeros();
-        let mut gpoint = gp;
-        match mesh.vertex_normals {
-            None => {
-                gnormal +=
-                    normalize_adjoint(&(it.hit.n / it.hit.n.norm()), it.hit.n.norm(), &g_outward);
-            }
-            Some(_) => {
-                let (w1, w2) = it.bary;
-                let w = [1.0 - w1 - w2, w1, w2];
-                let m_unit = if it.entering { it.n } else { -it.n };
-                let gm = normalize_adjoint(&m_unit, it.interp_norm, &g_outward);
-                ngrad.extend(it.verts.iter().zip(w).map(|(&v, wk)| (v, gm * wk)));
-                let gw: [f64; 3] = std::array::from_fn(|k| gm.dot(&it.vnormals[k]));
-                barycentric_adjoint(
-                    &it.hit.point,
-                    &it.tri,
-                    &it.hit.n,
-                    (w1, w2),
-                    (gw[1] - gw[0], gw[2] - gw[0]),
-                    &mut gpoint,
-                    &mut gtri,
-                    &mut gnormal,
-                );
-            }
+    Ok((loss, gp, gd))
+}
+
+/// Backward through one interface: from the gradients with respect to the outgoing ray (its
+/// origin `gp`, the hit point, and its direction `gd`) to the triangle's vertices (and, with
+/// vertex normals, the normals), added to `out`; returns the gradients with respect to the
+/// incoming ray's origin and direction.
+fn interface_adjoint(
+    mesh: &MeshState,
+    it: &Interface,
+    gp: &V3,
+    gd: &V3,
+    out: &mut PixelGradient,
+) -> (V3, V3) {
+    // d_next = out / |out|.
+    let gout = normalize_adjoint(&(it.snell.out / it.out_norm), it.out_norm, gd);
+    let (mut gdin, mut gn) = (V3::zeros(), V3::zeros());
+    snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
+    let g_outward = if it.entering { gn } else { -gn };
+    let mut gtri = [V3::zeros(); 3];
+    let mut gnormal = V3::zeros();
+    let mut gpoint = *gp;
+    match mesh.vertex_normals {
+        None => {
+            gnormal +=
+                normalize_adjoint(&(it.hit.n / it.hit.n.norm()), it.hit.n.norm(), &g_outward);
         }
-        let mut go = V3::zeros();
-        plane_hit_adjoint(
-            &it.hit, &it.dir_in, &it.tri, &gpoint, &gnormal, &mut go, &mut gdin, &mut gtri,
-        );
-        grad.extend(it.verts.into_iter().zip(gtri));
-        gp = go;
-        gd = gdin;
+        Some(_) => {
+            let (w1, w2) = it.bary;
+            let w = [1.0 - w1 - w2, w1, w2];
+            let m_unit = if it.entering { it.n } else { -it.n };
+            let gm = normalize_adjoint(&m_unit, it.interp_norm, &g_outward);
+            out.ngrad
+                .extend(it.verts.iter().zip(w).map(|(&v, wk)| (v, gm * wk)));
+            let gw: [f64; 3] = std::array::from_fn(|k| gm.dot(&it.vnormals[k]));
+            barycentric_adjoint(
+                &it.hit.point,
+                &it.tri,
+                &it.hit.n,
+                (w1, w2),
+                (gw[1] - gw[0], gw[2] - gw[0]),
+                &mut gpoint,
+                &mut gtri,
+                &mut gnormal,
+            );
+        }
     }
-    let finite = loss.is_finite()
-        && grad
-            .iter()
-            .chain(ngrad.iter())
-            .all(|(_, g)| g.iter().all(|x| x.is_finite()));
-    if !finite {
-        return Err(DropReason::NonFinite);
-    }
-    out.loss = loss;
-    Ok(())
+    let mut go = V3::zeros();
+    plane_hit_adjoint(
+        &it.hit, &it.dir_in, &it.tri, &gpoint, &gnormal, &mut go, &mut gdin, &mut gtri,
+    );
+    out.grad.extend(it.verts.into_iter().zip(gtri));
+    (go, gdin)
 }
 
 /// Traces one view through `surface` (holding `mesh`; with `vertex_normals` of `mesh` for the

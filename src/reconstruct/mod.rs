@@ -29,7 +29,7 @@ use crate::loss::smoothness::add_smoothness;
 use crate::loss::{silhouette, Accumulator, Drops};
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::validate::{validate, Defect};
-use crate::mesh::TriMesh;
+use crate::mesh::{InteriorEdge, TriMesh};
 use crate::remesh::{remesh, RemeshOptions};
 use crate::scan::silhouette::Silhouette;
 use crate::trace::path::MeshSurface;
@@ -256,83 +256,20 @@ fn run_stage(
     let mut surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Refit)?;
     let edges = mesh.interior_edges();
     let mut stepper = Stepper::new(&settings.optimizer, mesh, k, settings.stages, edge_mm)?;
-    let rs = RefractionSettings {
-        ior: inputs.ior,
-        ior_air: IOR_AIR,
-        max_refractions: settings.max_refractions,
-        normals: settings.normals,
-        form: settings.residual,
-        robust: settings.robust,
-    };
-    let nv = mesh.positions.len();
     let (mut used, mut drops, mut contour) = (0, Drops::default(), 0);
     let mut last = IterationRecord::default();
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ ((s as u64) << 40) ^ it as u64);
-        let vn = surface.vertex_normals();
-        // Refraction.
-        let mut acc = Accumulator::new(nv, vn.is_some());
-        let k = settings.refraction_views.min(inputs.targets.len());
-        for v in sample(&mut rng, inputs.targets.len(), k) {
-            let view = &inputs.targets[v];
-            let offset = rng.random_range(0..settings.pixel_stride);
-            let sub = ViewTargets {
-                pixels: view
-                    .pixels
-                    .iter()
-                    .skip(offset)
-                    .step_by(settings.pixel_stride)
-                    .copied()
-                    .collect(),
-                ..view.clone_empty()
-            };
-            add_view(&surface, mesh, vn, &rs, &sub, &mut acc)?;
-        }
-        let (r_used, r_weight, r_loss, r_drops) = (acc.used, acc.weight, acc.loss, acc.drops);
-        let g_r = acc.finish(mesh);
-        used += r_used;
-        drops.add(&r_drops);
-        // Silhouette.
-        let mut acc_s = Accumulator::new(nv, false);
-        let k = settings.silhouette_views.min(inputs.silhouettes.len());
-        if settings.weight_silhouette > 0.0 {
-            for v in sample(&mut rng, inputs.silhouettes.len(), k) {
-                silhouette::add_view(
-                    mesh,
-                    &edges,
-                    &inputs.silhouettes[v],
-                    surface.scene(),
-                    settings.silhouette,
-                    &mut acc_s,
-                )?;
-            }
-        }
-        contour += acc_s.used;
-        // Smoothness.
-        let mut acc_m = Accumulator::new(nv, false);
-        add_smoothness(mesh, &edges, settings.smoothness, &mut acc_m);
-        // Each term is a weighted mean over what it used.
-        let per_weight = |w: f64| if w > 0.0 { 1.0 / w } else { 0.0 };
-        let (wr, ws, wm) = (
-            settings.weight_refraction * per_weight(r_weight),
-            settings.weight_silhouette * per_weight(acc_s.weight),
-            settings.weight_smoothness * per_weight(acc_m.weight),
-        );
-        last = IterationRecord {
-            stage: s,
-            iteration: it,
-            refraction: wr * r_loss,
-            silhouette: ws * acc_s.loss,
-            smoothness: wm * acc_m.loss,
-            total: 0.0,
+        let terms = Terms {
+            refraction: refraction_term(inputs, &surface, mesh, settings, &mut rng)?,
+            silhouette: silhouette_term(inputs, &surface, mesh, &edges, settings, &mut rng)?,
+            smoothness: smoothness_term(mesh, &edges, settings),
         };
-        last.total = last.refraction + last.silhouette + last.smoothness;
-        let grad: Vec<V3> = g_r
-            .iter()
-            .zip(&acc_s.grad)
-            .zip(&acc_m.grad)
-            .map(|((a, b), c)| a * wr + b * ws + c * wm)
-            .collect();
+        used += terms.refraction.used;
+        drops.add(&terms.refraction.drops);
+        contour += terms.silhouette.used;
+        let (record, grad) = terms.combine(settings, (s, it));
+        last = record;
         history.push(last);
         progress.iteration(&last);
         let next = stepper.step(&mesh.positions, &grad);
@@ -342,6 +279,156 @@ fn run_stage(
         surface.update_positions(&next)?;
         mesh.positions = next;
     }
+    Ok(StageReport {
+        stage: s,
+        edge_mm,
+        vertices: mesh.positions.len(),
+        faces: mesh.faces.len(),
+        seconds: 0.0,
+        refraction_rays_used: used,
+        refraction_drops: drops,
+        contour_edges_used: contour,
+        degenerate_faces: check_stage_mesh(mesh, s)?,
+        last,
+    })
+}
+
+/// One term's value at an iteration: its weighted sum, the weight it is a mean over, what it
+/// used and dropped, and its gradient per vertex.
+struct TermValue {
+    loss: f64,
+    weight: f64,
+    used: usize,
+    drops: Drops,
+    grad: Vec<V3>,
+}
+
+impl TermValue {
+    fn from(acc: Accumulator, mesh: &TriMesh) -> Self {
+        let (loss, weight, used, drops) = (acc.loss, acc.weight, acc.used, acc.drops.clone());
+        Self {
+            loss,
+            weight,
+            used,
+            drops,
+            grad: acc.finish(mesh),
+        }
+    }
+}
+
+/// The three terms at one iteration.
+struct Terms {
+    refraction: TermValue,
+    silhouette: TermValue,
+    smoothness: TermValue,
+}
+
+impl Terms {
+    /// Each term as a weighted mean over what it used, times its setting's weight: the record of
+    /// the iteration (stage `s`, iteration `it`) and the total gradient.
+    fn combine(&self, settings: &Settings, (s, it): (usize, usize)) -> (IterationRecord, Vec<V3>) {
+        let per_weight = |t: &TermValue| if t.weight > 0.0 { 1.0 / t.weight } else { 0.0 };
+        let (wr, ws, wm) = (
+            settings.weight_refraction * per_weight(&self.refraction),
+            settings.weight_silhouette * per_weight(&self.silhouette),
+            settings.weight_smoothness * per_weight(&self.smoothness),
+        );
+        let mut record = IterationRecord {
+            stage: s,
+            iteration: it,
+            refraction: wr * self.refraction.loss,
+            silhouette: ws * self.silhouette.loss,
+            smoothness: wm * self.smoothness.loss,
+            total: 0.0,
+        };
+        record.total = record.refraction + record.silhouette + record.smoothness;
+        let grad = self
+            .refraction
+            .grad
+            .iter()
+            .zip(&self.silhouette.grad)
+            .zip(&self.smoothness.grad)
+            .map(|((a, b), c)| a * wr + b * ws + c * wm)
+            .collect();
+        (record, grad)
+    }
+}
+
+/// The refraction term over `refraction_views` random views, every `pixel_stride`-th pixel from
+/// a random offset.
+fn refraction_term(
+    inputs: &Inputs,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    settings: &Settings,
+    rng: &mut ChaCha8Rng,
+) -> Result<TermValue> {
+    let rs = RefractionSettings {
+        ior: inputs.ior,
+        ior_air: IOR_AIR,
+        max_refractions: settings.max_refractions,
+        normals: settings.normals,
+        form: settings.residual,
+        robust: settings.robust,
+    };
+    let vn = surface.vertex_normals();
+    let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
+    let k = settings.refraction_views.min(inputs.targets.len());
+    for v in sample(rng, inputs.targets.len(), k) {
+        let view = &inputs.targets[v];
+        let offset = rng.random_range(0..settings.pixel_stride);
+        let sub = ViewTargets {
+            pixels: view
+                .pixels
+                .iter()
+                .skip(offset)
+                .step_by(settings.pixel_stride)
+                .copied()
+                .collect(),
+            ..view.clone_empty()
+        };
+        add_view(surface, mesh, vn, &rs, &sub, &mut acc)?;
+    }
+    Ok(TermValue::from(acc, mesh))
+}
+
+/// The silhouette term over `silhouette_views` random views (nothing at weight 0).
+fn silhouette_term(
+    inputs: &Inputs,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    edges: &[InteriorEdge],
+    settings: &Settings,
+    rng: &mut ChaCha8Rng,
+) -> Result<TermValue> {
+    let mut acc = Accumulator::new(mesh.positions.len(), false);
+    let k = settings.silhouette_views.min(inputs.silhouettes.len());
+    if settings.weight_silhouette > 0.0 {
+        for v in sample(rng, inputs.silhouettes.len(), k) {
+            let sil = &inputs.silhouettes[v];
+            silhouette::add_view(
+                mesh,
+                edges,
+                sil,
+                surface.scene(),
+                settings.silhouette,
+                &mut acc,
+            )?;
+        }
+    }
+    Ok(TermValue::from(acc, mesh))
+}
+
+/// The smoothness term over every interior edge.
+fn smoothness_term(mesh: &TriMesh, edges: &[InteriorEdge], settings: &Settings) -> TermValue {
+    let mut acc = Accumulator::new(mesh.positions.len(), false);
+    add_smoothness(mesh, edges, settings.smoothness, &mut acc);
+    TermValue::from(acc, mesh)
+}
+
+/// Checks the mesh at the end of stage `s` (closed, manifold, outward); returns its count of
+/// degenerate faces (the next remesh removes them).
+fn check_stage_mesh(mesh: &TriMesh, s: usize) -> Result<usize> {
     let report = validate(mesh);
     let fatal: Vec<String> = report
         .defects
@@ -355,26 +442,14 @@ fn run_stage(
             fatal.join("; ")
         );
     }
-    let degenerate_faces = report
+    Ok(report
         .defects
         .iter()
         .map(|d| match d {
             Defect::Degenerate { count, .. } => *count,
             _ => 0,
         })
-        .sum();
-    Ok(StageReport {
-        stage: s,
-        edge_mm,
-        vertices: mesh.positions.len(),
-        faces: mesh.faces.len(),
-        seconds: 0.0,
-        refraction_rays_used: used,
-        refraction_drops: drops,
-        contour_edges_used: contour,
-        degenerate_faces,
-        last,
-    })
+        .sum())
 }
 
 /// Loads the decoded targets (weighted by `weights`) and silhouettes of `views`.

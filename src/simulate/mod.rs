@@ -183,7 +183,8 @@ impl Placed {
         let (lo, hi) = mesh.bbox().expect("a valid mesh has vertices");
         let mut placed = mesh.clone();
         placed.scale_translate(1.0, -(lo.coords + hi.coords) / 2.0);
-        let farthest = |f: fn(&Point3<f64>) -> f64| placed.positions.iter().map(f).fold(0.0, f64::max);
+        let farthest =
+            |f: fn(&Point3<f64>) -> f64| placed.positions.iter().map(f).fold(0.0, f64::max);
         let radius_xz = farthest(|p| p.x.hypot(p.z));
         let bound_radius = farthest(|p| p.coords.norm());
         let d = o.camera_distance_mm;
@@ -303,7 +304,14 @@ fn render_views(
         write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
         if o.decoded_only {
             let cam = &scan.camera;
-            decoded.push(write_exact_decoded(&decoded_dir, k, &samples, cam, o.spp, &fixed)?);
+            decoded.push(write_exact_decoded(
+                &decoded_dir,
+                k,
+                &samples,
+                cam,
+                o.spp,
+                &fixed,
+            )?);
         } else {
             let seed = o.seed.wrapping_add(k as u64);
             write_captures(&scan.view_dir(k), &samples, o, &code, seed)?;
