@@ -1,38 +1,83 @@
 //! `calibrate screen`: the monitor's pose from the background capture (the patterns without the
-//! object). Every camera pixel whose Gray code decodes completely sees the centre of a known
-//! monitor pixel, a 2D–3D correspondence; a well-spread grid of them gives the pose by RANSAC
-//! PnP, and a Levenberg–Marquardt refinement on every inlier pixel refines it (OpenCV).
+//! object), at any footprint of a camera pixel on the monitor.
+//!
+//! Every camera pixel whose leading Gray bits decode reliably sees a known *cell* of the monitor
+//! (the monitor pixel itself when every bit decodes; a block of 2ᵏ pixels when the camera does not
+//! resolve the finer stripes, as on a rig whose pixel covers several monitor pixels): a 2D–3D
+//! correspondence whose uncertainty is the cell's size.
+//!
+//! 1. A first pose: RANSAC PnP (OpenCV) on a grid over the most precise quarter of the
+//!    correspondences, its threshold scaled to their cells as the camera sees them.
+//! 2. A weighted fit in monitor pixels: each camera pixel's ray meets the monitor plane of the
+//!    pose at (u′, v′); the residual against the cell centre (u, v), divided by the cell's standard
+//!    deviation (width/√12, plus a floor for the decoder's own noise), is minimised by
+//!    Gauss–Newton over the 6 degrees of freedom of the pose with Huber weights, on an irregular
+//!    sample of the pixels (a regular grid would alias with the monitor's pixel grid).
+//! 3. The residuals are reported in monitor pixels; a pose whose residuals exceed the cells
+//!    (median normalised residual above 1) is flagged.
 
 use anyhow::{bail, Result};
-use nalgebra::{Isometry3, Point3, Vector3};
+use nalgebra::{Isometry3, Matrix6, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
 use opencv::core::{Mat, MatTraitConst, Point2d, Point3d, Vector};
 use rayon::prelude::*;
 
-use super::{camera_mats, pose_from_vectors, reprojection_rms};
+use super::{camera_mats, pose_from_vectors};
 use crate::decode::DecodedCapture;
 use crate::patterns::GrayCode;
 use crate::rig::{Camera, Screen};
 
-/// Correspondences RANSAC draws from (a grid over the decoded pixels).
+/// Correspondences RANSAC draws from (a grid over the most precise pixels).
 pub const TARGET_POINTS: usize = 4000;
-/// Correspondences the pose is refined on.
+/// Correspondences the pose is fitted on.
 pub const REFINE_POINTS: usize = 60_000;
-/// Reprojection error of an inlier, camera pixels.
-pub const INLIER_PX: f64 = 2.0;
-/// The smallest share of the image in which the monitor must decode.
+/// The smallest share of the image in which the monitor must decode (at any cell size).
 pub const MIN_DECODED_SHARE: f64 = 0.05;
+/// The largest cell a correspondence may have, monitor pixels.
+pub const MAX_CELL_PX: u32 = 64;
+/// Standard deviation of a fully decoded pixel's position besides its cell, monitor pixels.
+const NOISE_FLOOR_PX: f64 = 0.3;
 
 /// A monitor pose and how well it fits.
 #[derive(Clone, Debug)]
 pub struct ScreenCalibration {
     pub screen: Screen,
-    /// RMS reprojection error of the inlier correspondences, camera pixels.
-    pub rms_px: f64,
-    /// Share of the image whose every Gray bit decodes.
+    /// RMS of the residuals divided by their cells' standard deviations (about 1 when the pose
+    /// explains the decodes as well as their cells allow).
+    pub rms_normalised: f64,
+    /// Median and 95th percentile of the residuals, monitor pixels.
+    pub median_residual_px: f64,
+    pub p95_residual_px: f64,
+    /// Median cell width of the correspondences, monitor pixels (1: every bit decodes).
+    pub median_cell_px: f64,
+    /// Share of the image with a correspondence.
     pub decoded_share: f64,
-    /// Decoded pixels, and the inliers the pose is refined on (a sample of them).
+    /// Share of the image whose every Gray bit decodes.
+    pub complete_share: f64,
+    /// Correspondences, and those the pose was fitted on.
     pub points: usize,
-    pub inliers: usize,
+    pub fitted: usize,
+    /// Set when the residuals exceed the cells: the pose does not explain the decodes.
+    pub warning: Option<String>,
+}
+
+/// One correspondence: a camera pixel's ray (camera frame, unit) and the monitor cell it sees.
+#[derive(Clone, Copy, Debug)]
+struct Correspondence {
+    pixel: (f64, f64),
+    ray: Vector3<f64>,
+    /// Cell centre and width, monitor pixels.
+    u: f64,
+    v: f64,
+    cell_u: f64,
+    cell_v: f64,
+}
+
+impl Correspondence {
+    /// Standard deviations of u and v, monitor pixels.
+    fn sigma(&self) -> (f64, f64) {
+        let s = |c: f64| (c * c / 12.0 + NOISE_FLOOR_PX * NOISE_FLOOR_PX).sqrt();
+        (s(self.cell_u), s(self.cell_v))
+    }
 }
 
 /// Solves the monitor pose (monitor frame → camera frame) from a decoded background capture.
@@ -51,42 +96,89 @@ pub fn calibrate_screen(
             camera.height
         );
     }
-    let complete: Vec<usize> = (0..cap.pixels.len())
-        .filter(|&i| cap.lit[i] && cap.pixels[i].complete(code))
-        .collect();
-    let share = complete.len() as f64 / cap.pixels.len() as f64;
+    let all = correspondences(cap, code, camera);
+    let share = all.len() as f64 / cap.pixels.len() as f64;
     if share < MIN_DECODED_SHARE {
         bail!(
-            "the monitor decodes in {:.2} % of the background capture (at least {:.0} % needed): check that the monitor fills much of the camera view, the exposure, and that the patterns match the monitor ({}×{})",
+            "the monitor decodes in {:.2} % of the background capture, even to cells of {MAX_CELL_PX} monitor pixels (at least {:.0} % needed): check that the monitor fills much of the camera view, the exposure, and that the patterns match the monitor ({}×{})",
             100.0 * share,
             100.0 * MIN_DECODED_SHARE,
             code.width,
             code.height
         );
     }
-    let point = |i: usize| {
-        let d = &cap.pixels[i];
-        (
-            Point3d::new(
-                d.u.coord as f64 * pitch_mm,
-                d.v.coord as f64 * pitch_mm,
-                0.0,
-            ),
-            Point2d::new((i % cap.width) as f64, (i / cap.width) as f64),
-        )
-    };
-    // RANSAC on a grid of them…
-    let stride = ((complete.len() as f64 / TARGET_POINTS as f64)
-        .sqrt()
-        .floor() as usize)
-        .max(1);
-    let (object, image): (Vector<Point3d>, Vector<Point2d>) = complete
-        .iter()
-        .filter(|&&i| {
-            (i % cap.width).is_multiple_of(stride) && (i / cap.width).is_multiple_of(stride)
+    let guess = ransac_pose(&all, camera, pitch_mm)?;
+    let sample = irregular_sample(&all, REFINE_POINTS);
+    let pose = fit_pose(&sample, guess, pitch_mm);
+    if (pose.rotation * Vector3::z()).dot(&(pose * Point3::origin()).coords) <= 0.0 {
+        bail!("the solved monitor faces away from the camera: the decoded rows or columns are mirrored (check the patterns' order)");
+    }
+    let complete = (0..cap.pixels.len())
+        .filter(|&i| cap.lit[i] && cap.pixels[i].complete(code))
+        .count();
+    Ok(summarise(
+        &sample,
+        pose,
+        code,
+        pitch_mm,
+        share,
+        complete as f64 / cap.pixels.len() as f64,
+        all.len(),
+    ))
+}
+
+/// Every lit pixel whose cells are at most [`MAX_CELL_PX`] wide and inside the monitor.
+fn correspondences(cap: &DecodedCapture, code: &GrayCode, camera: &Camera) -> Vec<Correspondence> {
+    (0..cap.pixels.len())
+        .into_par_iter()
+        .filter_map(|i| {
+            let d = &cap.pixels[i];
+            let usable = cap.lit[i]
+                && d.u.bits > 0
+                && d.v.bits > 0
+                && d.u.cell <= MAX_CELL_PX
+                && d.v.cell <= MAX_CELL_PX
+                && (d.u.coord as f64) < code.width as f64
+                && (d.v.coord as f64) < code.height as f64;
+            if !usable {
+                return None;
+            }
+            let pixel = ((i % cap.width) as f64, (i / cap.width) as f64);
+            Some(Correspondence {
+                pixel,
+                ray: camera.pixel_ray(pixel.0, pixel.1)?,
+                u: d.u.coord as f64,
+                v: d.v.coord as f64,
+                cell_u: d.u.cell as f64,
+                cell_v: d.v.cell as f64,
+            })
         })
-        .map(|&i| point(i))
+        .collect()
+}
+
+/// Step 1: RANSAC PnP on a grid over the correspondences with the smallest cells.
+fn ransac_pose(all: &[Correspondence], camera: &Camera, pitch_mm: f64) -> Result<Isometry3<f64>> {
+    let cell = |c: &Correspondence| c.cell_u.max(c.cell_v);
+    let mut cells: Vec<f64> = all.iter().map(cell).collect();
+    cells.sort_by(f64::total_cmp);
+    let best_cell = cells[cells.len() / 4];
+    let precise: Vec<&Correspondence> = all.iter().filter(|c| cell(c) <= best_cell).collect();
+    let stride = ((precise.len() as f64 / TARGET_POINTS as f64).sqrt().floor() as usize).max(1);
+    let on_grid = |c: &&&Correspondence| {
+        (c.pixel.0 as usize).is_multiple_of(stride) && (c.pixel.1 as usize).is_multiple_of(stride)
+    };
+    let (object, image): (Vector<Point3d>, Vector<Point2d>) = precise
+        .iter()
+        .filter(on_grid)
+        .map(|c| {
+            (
+                Point3d::new(c.u * pitch_mm, c.v * pitch_mm, 0.0),
+                Point2d::new(c.pixel.0, c.pixel.1),
+            )
+        })
         .unzip();
+    // The cells as the camera sees them: monitor pixels per camera pixel from an affine fit.
+    let threshold_px = 2.0 + best_cell / monitor_px_per_camera_px(&precise).max(1e-3);
     let (k, dist) = camera_mats(camera)?;
     let (mut rvec, mut tvec, mut inliers) = (Mat::default(), Mat::default(), Mat::default());
     let found = opencv::calib3d::solve_pnp_ransac(
@@ -98,55 +190,178 @@ pub fn calibrate_screen(
         &mut tvec,
         false,
         500,
-        INLIER_PX as f32,
+        threshold_px as f32,
         0.999,
         &mut inliers,
         opencv::calib3d::SOLVEPNP_ITERATIVE,
     )?;
-    let ransac_inliers = if inliers.empty() { 0 } else { inliers.total() };
-    if !found || ransac_inliers < 6 {
-        bail!("no monitor pose fits the decoded background (RANSAC found {ransac_inliers} consistent points): check the camera calibration and the monitor pitch");
+    let n = if inliers.empty() { 0 } else { inliers.total() };
+    if !found || n < 6 {
+        bail!("no monitor pose fits the decoded background (RANSAC found {n} consistent points): check the camera calibration and the monitor pitch");
     }
-    // …then the pose is refined on an irregular sample of the decoded pixels it explains (a
-    // regular grid would alias with the monitor's pixel grid): every pixel whose index hashes
-    // into a share of REFINE_POINTS / decoded.
-    let guess = pose_from_vectors(&rvec, &tvec)?;
-    let keep = (REFINE_POINTS as f64 / complete.len() as f64).min(1.0);
-    let (obj_in, img_in): (Vector<Point3d>, Vector<Point2d>) = complete
-        .par_iter()
-        .filter(|&&i| {
-            ((i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11) as f64 / (1u64 << 53) as f64
-                <= keep
-        })
-        .map(|&i| point(i))
-        .filter(|(o, m)| {
-            camera
-                .project(&(guess * Point3::new(o.x, o.y, o.z)))
-                .is_some_and(|p| (p.x - m.x).hypot(p.y - m.y) < INLIER_PX)
-        })
-        .collect::<Vec<_>>()
-        .into_iter()
-        .unzip();
-    let criteria = super::criteria(100, 1e-12)?;
-    opencv::calib3d::solve_pnp_refine_lm(
-        &obj_in, &img_in, &k, &dist, &mut rvec, &mut tvec, criteria,
-    )?;
-    let pose: Isometry3<f64> = pose_from_vectors(&rvec, &tvec)?;
-    let rms_px = reprojection_rms(&obj_in, &img_in, &rvec, &tvec, &k, &dist)?;
-    // The monitor faces the camera: its z axis points away from it.
-    if (pose.rotation * Vector3::z()).dot(&(pose * Point3::origin()).coords) <= 0.0 {
-        bail!("the solved monitor faces away from the camera: the decoded rows or columns are mirrored (check the patterns' order)");
+    pose_from_vectors(&rvec, &tvec)
+}
+
+/// The scale of the decoded coordinates against the pixel coordinates: √|det A| of the
+/// least-squares affine map (x, y) → (u, v).
+fn monitor_px_per_camera_px(cs: &[&Correspondence]) -> f64 {
+    let mut ata = nalgebra::Matrix3::<f64>::zeros();
+    let (mut atu, mut atv) = (Vector3::zeros(), Vector3::zeros());
+    for c in cs {
+        let a = Vector3::new(c.pixel.0, c.pixel.1, 1.0);
+        ata += a * a.transpose();
+        atu += a * c.u;
+        atv += a * c.v;
     }
-    Ok(ScreenCalibration {
+    let Some(inv) = ata.try_inverse() else {
+        return 1.0;
+    };
+    let (pu, pv) = (inv * atu, inv * atv);
+    (pu.x * pv.y - pu.y * pv.x).abs().sqrt()
+}
+
+/// About `n` correspondences drawn by a hash of their pixel (irregular, deterministic).
+fn irregular_sample(all: &[Correspondence], n: usize) -> Vec<Correspondence> {
+    let keep = (n as f64 / all.len() as f64).min(1.0);
+    all.iter()
+        .filter(|c| {
+            let i = (c.pixel.1 as u64) << 32 | c.pixel.0 as u64;
+            (i.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11) as f64 / (1u64 << 53) as f64 <= keep
+        })
+        .copied()
+        .collect()
+}
+
+/// Where `c`'s ray meets the monitor plane of `pose`, monitor pixels; `None` if it runs parallel
+/// to it or meets it behind the camera.
+fn monitor_hit(c: &Correspondence, pose: &Isometry3<f64>, pitch_mm: f64) -> Option<(f64, f64)> {
+    let inv = pose.inverse();
+    let o = inv * Point3::origin();
+    let d = inv.rotation * c.ray;
+    let t = -o.z / d.z;
+    if !(t > 0.0 && t.is_finite()) {
+        return None;
+    }
+    let p = o + d * t;
+    Some((p.x / pitch_mm, p.y / pitch_mm))
+}
+
+/// `c`'s residual divided by its standard deviations, or `None` where its ray misses the plane.
+fn normalised_residual(
+    c: &Correspondence,
+    pose: &Isometry3<f64>,
+    pitch_mm: f64,
+) -> Option<[f64; 2]> {
+    let (u, v) = monitor_hit(c, pose, pitch_mm)?;
+    let (su, sv) = c.sigma();
+    Some([(u - c.u) / su, (v - c.v) / sv])
+}
+
+/// `pose` moved by the 6-vector `x` (rotation vector, rad; translation, mm; camera frame).
+fn moved(pose: &Isometry3<f64>, x: &Vector6<f64>) -> Isometry3<f64> {
+    let delta = Isometry3::from_parts(
+        Translation3::new(x[3], x[4], x[5]),
+        UnitQuaternion::from_scaled_axis(Vector3::new(x[0], x[1], x[2])),
+    );
+    delta * pose
+}
+
+/// Step 2: Gauss–Newton on the normalised residuals with Huber weights (k = 2), Jacobians by
+/// central differences.
+fn fit_pose(cs: &[Correspondence], mut pose: Isometry3<f64>, pitch_mm: f64) -> Isometry3<f64> {
+    let scale = (pose.translation.vector.norm()).max(1.0);
+    let steps = Vector6::new(1e-6, 1e-6, 1e-6, 1e-6 * scale, 1e-6 * scale, 1e-6 * scale);
+    for _ in 0..30 {
+        let (jtj, jtr) = cs
+            .par_iter()
+            .filter_map(|c| {
+                let r = normalised_residual(c, &pose, pitch_mm)?;
+                let mut j = [[0.0; 6]; 2];
+                for k in 0..6 {
+                    let mut e = Vector6::zeros();
+                    e[k] = steps[k];
+                    let p = normalised_residual(c, &moved(&pose, &e), pitch_mm)?;
+                    let m = normalised_residual(c, &moved(&pose, &-e), pitch_mm)?;
+                    for a in 0..2 {
+                        j[a][k] = (p[a] - m[a]) / (2.0 * steps[k]);
+                    }
+                }
+                let w = |x: f64| if x.abs() <= 2.0 { 1.0 } else { 2.0 / x.abs() };
+                let mut jtj = Matrix6::zeros();
+                let mut jtr = Vector6::zeros();
+                for a in 0..2 {
+                    let row = Vector6::from_row_slice(&j[a]);
+                    jtj += w(r[a]) * row * row.transpose();
+                    jtr += w(r[a]) * row * r[a];
+                }
+                Some((jtj, jtr))
+            })
+            .reduce(
+                || (Matrix6::zeros(), Vector6::zeros()),
+                |a, b| (a.0 + b.0, a.1 + b.1),
+            );
+        let Some(step) = jtj.cholesky().map(|ch| ch.solve(&-jtr)) else {
+            break;
+        };
+        pose = moved(&pose, &step);
+        if step.fixed_rows::<3>(0).norm() < 1e-10 && step.fixed_rows::<3>(3).norm() < 1e-7 * scale {
+            break;
+        }
+    }
+    pose
+}
+
+/// Step 3: the residuals of the fitted pose, in monitor pixels and normalised, and the flag.
+fn summarise(
+    cs: &[Correspondence],
+    pose: Isometry3<f64>,
+    code: &GrayCode,
+    pitch_mm: f64,
+    decoded_share: f64,
+    complete_share: f64,
+    points: usize,
+) -> ScreenCalibration {
+    let mut px = Vec::with_capacity(cs.len());
+    let mut norm = Vec::with_capacity(cs.len());
+    for c in cs {
+        if let (Some((u, v)), Some(r)) = (
+            monitor_hit(c, &pose, pitch_mm),
+            normalised_residual(c, &pose, pitch_mm),
+        ) {
+            px.push((u - c.u).hypot(v - c.v));
+            norm.push(r[0].hypot(r[1]) / std::f64::consts::SQRT_2);
+        }
+    }
+    let quantile = |v: &mut Vec<f64>, q: f64| {
+        v.sort_by(f64::total_cmp);
+        v.get(((v.len() as f64 - 1.0) * q).round() as usize)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
+    let rms_normalised =
+        (norm.iter().map(|x| x * x).sum::<f64>() / norm.len().max(1) as f64).sqrt();
+    let median_normalised = quantile(&mut norm, 0.5);
+    let mut cells: Vec<f64> = cs.iter().map(|c| c.cell_u.max(c.cell_v)).collect();
+    let warning = (median_normalised > 1.0).then(|| {
+        format!(
+            "the monitor pose leaves residuals larger than the decoded cells (median {median_normalised:.2} cell standard deviations): check the camera calibration, the pitch, and reflections on the monitor"
+        )
+    });
+    ScreenCalibration {
         screen: Screen {
             width_px: code.width,
             height_px: code.height,
             pitch_mm,
             pose,
         },
-        rms_px,
-        decoded_share: share,
-        points: complete.len(),
-        inliers: obj_in.len(),
-    })
+        rms_normalised,
+        median_residual_px: quantile(&mut px, 0.5),
+        p95_residual_px: quantile(&mut px, 0.95),
+        median_cell_px: quantile(&mut cells, 0.5),
+        decoded_share,
+        complete_share,
+        points,
+        fitted: cs.len(),
+        warning,
+    }
 }

@@ -186,12 +186,22 @@ fn screen(a: &ScreenArgs) -> Result<()> {
     let t = cal.screen.pose.translation.vector;
     let n = cal.screen.pose.rotation * nalgebra::Vector3::z();
     outln!(
-        "monitor decoded in {:.1} % of the image; pose refined on {} of its {} pixels; RMS reprojection error {:.3} px",
+        "monitor decoded in {:.1} % of the image ({:.1} % to every bit; median cell {:.0} monitor px); pose fitted on {} of its {} pixels",
         100.0 * cal.decoded_share,
-        cal.inliers,
-        cal.points,
-        cal.rms_px
+        100.0 * cal.complete_share,
+        cal.median_cell_px,
+        cal.fitted,
+        cal.points
     );
+    outln!(
+        "residuals: median {:.3}, 95 % {:.3} monitor px; RMS {:.2} cell standard deviations",
+        cal.median_residual_px,
+        cal.p95_residual_px,
+        cal.rms_normalised
+    );
+    if let Some(w) = &cal.warning {
+        eprintln!("warning: {w}");
+    }
     outln!(
         "pixel (0, 0) at ({:.2}, {:.2}, {:.2}) mm, normal ({:.4}, {:.4}, {:.4}) (camera frame)",
         t.x,

@@ -305,7 +305,7 @@ struct TermValue {
 
 impl TermValue {
     fn from(acc: Accumulator, mesh: &TriMesh) -> Self {
-        let (loss, weight, used, drops) = (acc.loss, acc.weight, acc.used, acc.drops.clone());
+        let (loss, weight, used, drops) = (acc.loss, acc.weight, acc.used, acc.drops);
         Self {
             loss,
             weight,
