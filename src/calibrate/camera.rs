@@ -72,40 +72,99 @@ pub fn calibrate_camera(
     size: (u32, u32),
     board: &Board,
     o: &CameraOptions,
-    mut progress: impl FnMut(usize),
+    progress: impl FnMut(usize),
 ) -> Result<CameraCalibration> {
+    let found = find_boards(images, board, progress)?;
+    let solved = solve(&found, size, o)?;
+    let median = crate::util::median(solved.errors.clone());
+    let views = found
+        .used
+        .iter()
+        .zip(&solved.errors)
+        .map(|(p, &e)| ViewResult {
+            path: p.clone(),
+            error_px: e,
+            outlier: e > 2.5 * median,
+        })
+        .collect();
+    Ok(CameraCalibration {
+        camera: solved.camera,
+        rms_px: solved.rms,
+        views,
+        skipped: found.skipped,
+        record: CameraRecord {
+            nframes: found.used.len(),
+            board_width: board.cols,
+            board_height: board.rows,
+            square_size: board.square_mm,
+            aspect_ratio: o.fix_aspect_ratio.then_some(1.0),
+            flags: o.flags(),
+            per_view_errors: solved.errors,
+            extrinsics: solved.extrinsics,
+        },
+    })
+}
+
+/// The boards found in the images: OpenCV's point lists and the images used and skipped.
+struct FoundBoards {
+    object_points: Vector<Vector<Point3f>>,
+    image_points: Vector<Vector<Point2f>>,
+    used: Vec<PathBuf>,
+    skipped: Vec<PathBuf>,
+}
+
+/// Finds the board's corners in every image; an error when fewer than [`MIN_IMAGES`] show it.
+fn find_boards(
+    images: &[BoardImage],
+    board: &Board,
+    mut progress: impl FnMut(usize),
+) -> Result<FoundBoards> {
     let object: Vector<Point3f> = board
         .object_points()
         .iter()
         .map(|p| Point3f::new(p.x as f32, p.y as f32, p.z as f32))
         .collect();
-    let mut object_points = Vector::<Vector<Point3f>>::new();
-    let mut image_points = Vector::<Vector<Point2f>>::new();
-    let (mut used, mut skipped) = (Vec::new(), Vec::new());
+    let mut f = FoundBoards {
+        object_points: Vector::new(),
+        image_points: Vector::new(),
+        used: Vec::new(),
+        skipped: Vec::new(),
+    };
     for (i, im) in images.iter().enumerate() {
         match board.find_corners(&im.image)? {
             Some(c) => {
-                image_points.push(
-                    c.iter()
-                        .map(|p| Point2f::new(p.x as f32, p.y as f32))
-                        .collect(),
-                );
-                object_points.push(object.clone());
-                used.push(im.path.clone());
+                let corners = c.iter().map(|p| Point2f::new(p.x as f32, p.y as f32));
+                f.image_points.push(corners.collect());
+                f.object_points.push(object.clone());
+                f.used.push(im.path.clone());
             }
-            None => skipped.push(im.path.clone()),
+            None => f.skipped.push(im.path.clone()),
         }
         progress(i);
     }
-    if used.len() < MIN_IMAGES {
+    if f.used.len() < MIN_IMAGES {
         bail!(
             "the {}×{} board was found in {} of {} images; calibration needs at least {MIN_IMAGES} (check --board: it counts inner corners, e.g. 9x6 for a board of 10×7 squares)",
             board.cols,
             board.rows,
-            used.len(),
+            f.used.len(),
             images.len()
         );
     }
+    Ok(f)
+}
+
+/// What `calibrateCamera` found.
+struct Solved {
+    camera: Camera,
+    rms: f64,
+    /// Per used image: RMS reprojection error (px) and board pose (rotation vector, translation).
+    errors: Vec<f64>,
+    extrinsics: Vec<[f64; 6]>,
+}
+
+/// OpenCV's `calibrateCamera` on the found boards, checked to be finite.
+fn solve(found: &FoundBoards, size: (u32, u32), o: &CameraOptions) -> Result<Solved> {
     // fx/fy = 1 when the aspect ratio is fixed (OpenCV reads only that ratio from it).
     let mut k = Mat::from_slice_2d(&[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
     let mut dist = Mat::from_slice(&[0.0f64; 5])?.reshape(1, 5)?.try_clone()?;
@@ -113,8 +172,8 @@ pub fn calibrate_camera(
     let (mut sd_in, mut sd_ex, mut per_view) = (Mat::default(), Mat::default(), Mat::default());
     let criteria = super::criteria(30, f64::EPSILON)?;
     let rms = opencv::calib3d::calibrate_camera_extended(
-        &object_points,
-        &image_points,
+        &found.object_points,
+        &found.image_points,
         Size::new(size.0 as i32, size.1 as i32),
         &mut k,
         &mut dist,
@@ -128,7 +187,6 @@ pub fn calibrate_camera(
     )?;
     let kk: Vec<f64> = k.data_typed::<f64>()?.to_vec();
     let dd: Vec<f64> = dist.data_typed::<f64>()?.to_vec();
-    let errors: Vec<f64> = per_view.data_typed::<f64>()?.to_vec();
     if !rms.is_finite() || kk.iter().chain(&dd).any(|v| !v.is_finite()) {
         bail!("calibration diverged (non-finite result): the board poses may be too similar; vary the tilt between images");
     }
@@ -136,25 +194,6 @@ pub fn calibrate_camera(
     for (d, v) in d5.iter_mut().zip(&dd) {
         *d = *v;
     }
-    let camera = Camera {
-        width: size.0,
-        height: size.1,
-        fx: kk[0],
-        fy: kk[4],
-        cx: kk[2],
-        cy: kk[5],
-        dist: d5,
-    };
-    let median = crate::util::median(errors.clone());
-    let views = used
-        .iter()
-        .zip(&errors)
-        .map(|(p, &e)| ViewResult {
-            path: p.clone(),
-            error_px: e,
-            outlier: e > 2.5 * median,
-        })
-        .collect();
     let extrinsics = rvecs
         .iter()
         .zip(tvecs.iter())
@@ -163,20 +202,18 @@ pub fn calibrate_camera(
             Ok([r[0], r[1], r[2], t[0], t[1], t[2]])
         })
         .collect::<Result<Vec<_>>>()?;
-    Ok(CameraCalibration {
-        camera,
-        rms_px: rms,
-        views,
-        skipped,
-        record: CameraRecord {
-            nframes: used.len(),
-            board_width: board.cols,
-            board_height: board.rows,
-            square_size: board.square_mm,
-            aspect_ratio: o.fix_aspect_ratio.then_some(1.0),
-            flags: o.flags(),
-            per_view_errors: errors,
-            extrinsics,
+    Ok(Solved {
+        camera: Camera {
+            width: size.0,
+            height: size.1,
+            fx: kk[0],
+            fy: kk[4],
+            cx: kk[2],
+            cy: kk[5],
+            dist: d5,
         },
+        rms,
+        errors: per_view.data_typed::<f64>()?.to_vec(),
+        extrinsics,
     })
 }

@@ -203,83 +203,110 @@ enum LocalVertex {
 /// changes sign). Normals point to where the field is ≤ 0.
 pub fn marching_cubes(grid: &Grid, blocks: &[FieldBlock]) -> TriMesh {
     let table = cases();
-    let b = grid.block;
-    let n1 = b + 1;
     let per_block: Vec<(Vec<LocalVertex>, Vec<[u32; 3]>)> = blocks
         .par_iter()
         .map(|blk| {
-            let val = |i: usize, j: usize, k: usize| blk.values[i + n1 * (j + n1 * k)];
-            let mut verts = Vec::new();
-            let mut tris = Vec::new();
-            let mut edge_ids: HashMap<u64, u32> = HashMap::new();
-            for k in 0..b {
-                for j in 0..b {
-                    for i in 0..b {
-                        let mut config = 0u8;
-                        for c in 0..8 {
-                            let [x, y, z] = corner(c);
-                            if val(i + x, j + y, k + z) > 0.0 {
-                                config |= 1 << c;
-                            }
-                        }
-                        let case = &table[config as usize];
-                        if case.tris.is_empty() {
-                            continue;
-                        }
-                        let mut ids = [u32::MAX; 16];
-                        let mut edge_vertex = |e: usize, verts: &mut Vec<LocalVertex>| {
-                            let [p, q] = edge_corners(e);
-                            let (a, c) = (corner(p), corner(q));
-                            let g = [
-                                blk.corner[0] + i + a[0],
-                                blk.corner[1] + j + a[1],
-                                blk.corner[2] + k + a[2],
-                            ];
-                            let key = ((((g[0] as u64) << 21 | g[1] as u64) << 21) | g[2] as u64)
-                                << 2
-                                | (e / 4) as u64;
-                            *edge_ids.entry(key).or_insert_with(|| {
-                                let (va, vc) = (
-                                    val(i + a[0], j + a[1], k + a[2]) as f64,
-                                    val(i + c[0], j + c[1], k + c[2]) as f64,
-                                );
-                                let t = (va / (va - vc)).clamp(0.01, 0.99);
-                                let mut p = grid.origin
-                                    + grid.step
-                                        * Vector3::new(g[0] as f64, g[1] as f64, g[2] as f64);
-                                p[e / 4] += t * grid.step;
-                                verts.push(LocalVertex::Edge(key, p));
-                                verts.len() as u32 - 1
-                            })
-                        };
-                        for t in &case.tris {
-                            for &v in t {
-                                if v < 12 && ids[v as usize] == u32::MAX {
-                                    ids[v as usize] = edge_vertex(v as usize, &mut verts);
-                                }
-                            }
-                        }
-                        for (l, lp) in case.centre_loops.iter().enumerate() {
-                            let mut c = Vector3::zeros();
-                            for &e in lp {
-                                let id = edge_vertex(e as usize, &mut verts);
-                                c += match &verts[id as usize] {
-                                    LocalVertex::Edge(_, p) | LocalVertex::Centre(p) => p.coords,
-                                };
-                            }
-                            verts.push(LocalVertex::Centre(Point3::from(c / lp.len() as f64)));
-                            ids[12 + l] = verts.len() as u32 - 1;
-                        }
-                        for t in &case.tris {
-                            tris.push(t.map(|v| ids[v as usize]));
-                        }
+            let mut m = BlockMesher {
+                grid,
+                blk,
+                verts: Vec::new(),
+                tris: Vec::new(),
+                edge_ids: HashMap::new(),
+            };
+            for k in 0..grid.block {
+                for j in 0..grid.block {
+                    for i in 0..grid.block {
+                        m.cube([i, j, k], table);
                     }
                 }
             }
-            (verts, tris)
+            (m.verts, m.tris)
         })
         .collect();
-    // Merge: edge vertices shared between blocks through their keys.
+    merge_blocks(per_block)
+}
+
+/// The surface of one block, with block-local vertex ids.
+struct BlockMesher<'a> {
+    grid: &'a Grid,
+    blk: &'a FieldBlock,
+    verts: Vec<LocalVertex>,
+    tris: Vec<[u32; 3]>,
+    /// Local id of the vertex on each grid edge (keyed as in [`LocalVertex::Edge`]).
+    edge_ids: HashMap<u64, u32>,
+}
+
+impl BlockMesher<'_> {
+    /// The field at local grid point `l`.
+    fn value(&self, l: [usize; 3]) -> f32 {
+        let n1 = self.grid.block + 1;
+        self.blk.values[l[0] + n1 * (l[1] + n1 * l[2])]
+    }
+
+    /// Triangulates the cube whose low corner is local point `c`.
+    fn cube(&mut self, c: [usize; 3], table: &[Case]) {
+        let mut config = 0u8;
+        for k in 0..8 {
+            let o = corner(k);
+            if self.value([c[0] + o[0], c[1] + o[1], c[2] + o[2]]) > 0.0 {
+                config |= 1 << k;
+            }
+        }
+        let case = &table[config as usize];
+        if case.tris.is_empty() {
+            return;
+        }
+        let mut ids = [u32::MAX; 16];
+        for t in &case.tris {
+            for &v in t {
+                if v < 12 && ids[v as usize] == u32::MAX {
+                    ids[v as usize] = self.edge_vertex(c, v as usize);
+                }
+            }
+        }
+        for (l, lp) in case.centre_loops.iter().enumerate() {
+            let mut sum = Vector3::zeros();
+            for &e in lp {
+                let id = self.edge_vertex(c, e as usize);
+                sum += match &self.verts[id as usize] {
+                    LocalVertex::Edge(_, p) | LocalVertex::Centre(p) => p.coords,
+                };
+            }
+            self.verts
+                .push(LocalVertex::Centre(Point3::from(sum / lp.len() as f64)));
+            ids[12 + l] = self.verts.len() as u32 - 1;
+        }
+        for t in &case.tris {
+            self.tris.push(t.map(|v| ids[v as usize]));
+        }
+    }
+
+    /// The vertex on edge `e` of the cube at local point `c` (made once per grid edge): where
+    /// the field crosses zero along it, kept 1 % away from the edge's ends.
+    fn edge_vertex(&mut self, c: [usize; 3], e: usize) -> u32 {
+        let [p, q] = edge_corners(e);
+        let (a, b) = (corner(p), corner(q));
+        let la = [c[0] + a[0], c[1] + a[1], c[2] + a[2]];
+        let lb = [c[0] + b[0], c[1] + b[1], c[2] + b[2]];
+        let g = std::array::from_fn::<usize, 3, _>(|x| self.blk.corner[x] + la[x]);
+        let key = ((((g[0] as u64) << 21 | g[1] as u64) << 21) | g[2] as u64) << 2 | (e / 4) as u64;
+        if let Some(&id) = self.edge_ids.get(&key) {
+            return id;
+        }
+        let (va, vb) = (self.value(la) as f64, self.value(lb) as f64);
+        let t = (va / (va - vb)).clamp(0.01, 0.99);
+        let step = self.grid.step;
+        let mut pos = self.grid.origin + step * Vector3::from(g.map(|x| x as f64));
+        pos[e / 4] += t * step;
+        self.verts.push(LocalVertex::Edge(key, pos));
+        let id = self.verts.len() as u32 - 1;
+        self.edge_ids.insert(key, id);
+        id
+    }
+}
+
+/// One mesh from the blocks' surfaces: edge vertices shared between blocks through their keys.
+fn merge_blocks(per_block: Vec<(Vec<LocalVertex>, Vec<[u32; 3]>)>) -> TriMesh {
     let mut positions = Vec::new();
     let mut faces = Vec::new();
     let mut global: HashMap<u64, u32> = HashMap::new();
