@@ -172,7 +172,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
             crate::trace::path::MAX_TRAIL
         );
     }
-    let scan = crate::scan::Scan::open(&a.scan)?;
+    let scan = super::common::open_scan(&a.scan)?;
     let views = super::common::parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let mesh_path = a
         .mesh

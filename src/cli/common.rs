@@ -51,6 +51,15 @@ pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
     Ok((w, h))
 }
 
+/// Opens a scan folder and prints the rig's plausibility warnings.
+pub fn open_scan(dir: &std::path::Path) -> Result<crate::scan::Scan> {
+    let scan = crate::scan::Scan::open(dir)?;
+    for w in scan.plausibility_warnings() {
+        eprintln!("warning: {w}");
+    }
+    Ok(scan)
+}
+
 /// A finite number parsed from `s`.
 fn finite(s: &str) -> Result<f64, String> {
     match s.trim().parse::<f64>() {

@@ -55,7 +55,7 @@ pub struct DecodeArgs {
 }
 
 pub fn run(a: &DecodeArgs) -> Result<()> {
-    let scan = Scan::open(&a.scan)?;
+    let scan = super::common::open_scan(&a.scan)?;
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let o = DecodeOptions {
         white_threshold: a.white_threshold,

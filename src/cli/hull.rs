@@ -46,7 +46,7 @@ pub fn run(a: &HullArgs) -> Result<()> {
         ensure_extension(r, "--report", &["json"])?;
         ensure_output_spares_inputs(r, "--report", &[&a.scan, &a.output])?;
     }
-    let scan = Scan::open(&a.scan)?;
+    let scan = super::common::open_scan(&a.scan)?;
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let (sils, warnings) = silhouettes(&scan, &views)?;
     for w in &warnings {

@@ -54,7 +54,7 @@ pub struct ReconstructArgs {
 }
 
 pub fn run(a: &ReconstructArgs) -> Result<()> {
-    let scan = Scan::open(&a.scan)?;
+    let scan = super::common::open_scan(&a.scan)?;
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let settings = settings(a)?;
     let existing = output::prepare(&a.output, a.resume, a.force)?;

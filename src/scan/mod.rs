@@ -259,6 +259,25 @@ impl Scan {
         })
     }
 
+    /// Named warnings about a rig that works but looks wrong: the turntable axis projects
+    /// outside the image (the object is probably out of view) or far from its centre.
+    pub fn plausibility_warnings(&self) -> Vec<String> {
+        let c = &self.camera;
+        let (w, h) = (c.width as f64, c.height as f64);
+        match c.project(&self.turntable.axis_point) {
+            None => vec!["the turntable axis point projects behind the camera".into()],
+            Some(p) if p.x < 0.0 || p.y < 0.0 || p.x > w || p.y > h => vec![format!(
+                "the turntable axis projects outside the image (at pixel ({:.0}, {:.0}) of {w}×{h}): the object is probably out of view; check turntable.yml",
+                p.x, p.y
+            )],
+            Some(p) if (p.x - w / 2.0).abs() > 0.3 * w => vec![format!(
+                "the turntable axis projects {:.0} px from the image's centre column: the object will leave the view as it turns; centre the turntable",
+                (p.x - w / 2.0).abs()
+            )],
+            Some(_) => Vec::new(),
+        }
+    }
+
     /// Writes `scan.toml` and the calibration files into `self.dir` (atomically each).
     pub fn save(&self) -> Result<(), ScanError> {
         let c = &self.config.calibration;
