@@ -11,7 +11,6 @@ use super::common::{
 use crate::decode::compare::{compare_view, Comparison};
 use crate::decode::mask::MaskOptions;
 use crate::decode::{decode_scan, DecodeOptions};
-use crate::scan::Scan;
 
 #[derive(Args, Debug)]
 pub struct DecodeArgs {

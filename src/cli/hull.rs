@@ -9,7 +9,6 @@ use clap::Args;
 use super::common::{bar, parse_views, positive};
 use crate::hull::{silhouettes, visual_hull, HullOptions};
 use crate::mesh::io::write_mesh;
-use crate::scan::Scan;
 use crate::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
 #[derive(Args, Debug)]

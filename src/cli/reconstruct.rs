@@ -16,7 +16,6 @@ use crate::reconstruct::config::Settings;
 use crate::reconstruct::output;
 use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
 use crate::reconstruct::Start;
-use crate::scan::Scan;
 
 #[derive(Args, Debug)]
 pub struct ReconstructArgs {
