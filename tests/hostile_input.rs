@@ -110,38 +110,21 @@ fn adaptive_sizing_grows_with_the_allowed_error() {
         coarse <= fine,
         "ε 100 mm: {coarse} faces, ε 0.05 mm: {fine}"
     );
-    let o = glasscan(&[
-        "remesh",
-        s(&input),
-        "-o",
-        s(&dir.path().join("x.ply")),
-        "--edge-mm",
-        "6",
-        "--adaptive",
-        "--min-edge-mm",
-        "0",
-    ]);
-    refused(&o, 1, "adaptive sizing needs 0 < min edge");
-    let o = glasscan(&[
-        "remesh",
-        s(&input),
-        "-o",
-        s(&dir.path().join("x.ply")),
-        "--edge-mm",
-        "1e-300",
-    ]);
-    refused(&o, 1, "use at least 0.");
-    let o = glasscan(&[
-        "remesh",
-        s(&input),
-        "-o",
-        s(&dir.path().join("x.ply")),
-        "--edge-mm",
-        "3",
-        "--iterations",
-        "1000000000",
-    ]);
-    refused(&o, 1, "at most 1000");
+    let x = dir.path().join("x.ply");
+    for (extra, needle) in [
+        (
+            &["--edge-mm", "6", "--adaptive", "--min-edge-mm", "0"][..],
+            "adaptive sizing needs 0 < min edge",
+        ),
+        (&["--edge-mm", "1e-300"][..], "use at least 0."),
+        (
+            &["--edge-mm", "3", "--iterations", "1000000000"][..],
+            "at most 1000",
+        ),
+    ] {
+        let args = [&["remesh", s(&input), "-o", s(&x)][..], extra].concat();
+        refused(&glasscan(&args), 1, needle);
+    }
 }
 
 /// `simulate` never mixes two scans: a non-empty folder needs --force, which replaces it whole.

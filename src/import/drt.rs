@@ -23,7 +23,7 @@ use nalgebra::{
 };
 
 use crate::calibrate::turntable::axis_of_motions;
-use crate::rig::{Camera, Screen, Turntable};
+use crate::rig::{Camera, Screen};
 use crate::scan::decoded::ViewSummary;
 use crate::scan::decoded::{mask_path, rays_path, write_rays, write_summary, PixelRay};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
@@ -425,9 +425,7 @@ fn imported_scan(
             turntable: "turntable.yml".into(),
             poses: Some("poses.yml".into()),
         },
-        views: Views {
-            angles_deg: angles_deg.clone(),
-        },
+        views: Views { angles_deg },
         patterns: Patterns {
             kind: PatternKind::Graycode,
             width: screen.width_px,
@@ -435,18 +433,14 @@ fn imported_scan(
             phase_shift: None,
         },
     };
-    Ok(Scan {
-        dir: out.to_path_buf(),
+    Ok(Scan::new(
+        out,
         config,
         camera,
         screen,
-        turntable: Turntable {
-            axis_point,
-            axis_dir,
-            angles_deg,
-        },
-        poses: Some(poses),
-    })
+        (axis_point, axis_dir),
+        Some(poses),
+    )?)
 }
 
 /// A monitor on the least-squares plane of the targets, facing away from the camera, its

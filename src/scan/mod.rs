@@ -29,7 +29,7 @@ pub mod silhouette;
 
 use std::path::{Path, PathBuf};
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::patterns::{GrayCode, PhaseShift};
@@ -82,6 +82,9 @@ pub enum PatternKind {
 
 /// A scan folder with its configuration and calibration loaded and checked.
 #[derive(Clone, Debug)]
+// A private field rather than #[non_exhaustive]: it also keeps the rest of the crate from
+// building a scan without its checks.
+#[allow(clippy::manual_non_exhaustive)]
 pub struct Scan {
     pub dir: PathBuf,
     pub config: ScanConfig,
@@ -90,6 +93,8 @@ pub struct Scan {
     pub turntable: Turntable,
     /// The views' poses when `calibration.poses` names a file (else the turntable's).
     pub poses: Option<Vec<Isometry3<f64>>>,
+    /// Only [`Scan::open`] and [`Scan::new`] make a scan: they check that its parts agree.
+    _checked: (),
 }
 
 /// Why a scan folder cannot be used.
@@ -191,38 +196,57 @@ impl Scan {
     /// Loads `dir/scan.toml` and the calibration files it names, and checks that they agree.
     pub fn open(dir: &Path) -> Result<Self, ScanError> {
         let config = ScanConfig::load(dir)?;
-        let path = dir.join("scan.toml");
-        let bad = |msg: String| ScanError::Config {
-            path: path.clone(),
-            msg,
-        };
         let c = &config.calibration;
         let camera = calib_io::read_camera(&dir.join(&c.camera))?;
         let screen = calib_io::read_screen(&dir.join(&c.screen))?;
-        let (axis_point, axis_dir) = calib_io::read_turntable_axis(&dir.join(&c.turntable))?;
-        if (config.patterns.width, config.patterns.height) != (screen.width_px, screen.height_px) {
-            return Err(bad(format!(
-                "patterns are {}×{} but the screen ({}) is {}×{}",
-                config.patterns.width,
-                config.patterns.height,
-                c.screen.display(),
-                screen.width_px,
-                screen.height_px
-            )));
-        }
-        check_monitor_placement(&screen).map_err(|msg| ScanError::Config {
-            path: dir.join(&c.screen),
+        let axis = calib_io::read_turntable_axis(&dir.join(&c.turntable))?;
+        let poses = match &c.poses {
+            Some(p) => Some(calib_io::read_view_poses(&dir.join(p))?),
+            None => None,
+        };
+        Self::new(dir, config, camera, screen, axis, poses)
+    }
+
+    /// A scan in `dir` from its parts (the turntable's axis point, mm, and direction, camera
+    /// frame), checked as [`Scan::open`] checks a folder: patterns the size of the screen, a
+    /// monitor in front of the camera facing it, an axis in front of the camera and not through
+    /// it, and a pose per view.
+    pub fn new(
+        dir: &Path,
+        config: ScanConfig,
+        camera: Camera,
+        screen: Screen,
+        (axis_point, axis_dir): (Point3<f64>, Unit<Vector3<f64>>),
+        poses: Option<Vec<Isometry3<f64>>>,
+    ) -> Result<Self, ScanError> {
+        let c = &config.calibration;
+        let bad = |file: &Path, msg: String| ScanError::Config {
+            path: dir.join(file),
             msg,
-        })?;
+        };
+        if (config.patterns.width, config.patterns.height) != (screen.width_px, screen.height_px) {
+            return Err(bad(
+                Path::new("scan.toml"),
+                format!(
+                    "patterns are {}×{} but the screen ({}) is {}×{}",
+                    config.patterns.width,
+                    config.patterns.height,
+                    c.screen.display(),
+                    screen.width_px,
+                    screen.height_px
+                ),
+            ));
+        }
+        check_monitor_placement(&screen).map_err(|msg| bad(&c.screen, msg))?;
         if axis_point.z <= 0.0 {
-            return Err(ScanError::Config {
-                path: dir.join(&c.turntable),
-                msg: format!(
+            return Err(bad(
+                &c.turntable,
+                format!(
                     "the turntable axis point lies behind the camera (z = {:.1} mm in the camera \
                      frame): check axis_point_mm",
                     axis_point.z
                 ),
-            });
+            ));
         }
         let turntable = Turntable {
             axis_point,
@@ -231,24 +255,24 @@ impl Scan {
         };
         if turntable.base_pose().is_none() {
             return Err(bad(
+                Path::new("scan.toml"),
                 "inconsistent calibration: the camera lies on the turntable axis".into(),
             ));
         }
-        let poses = match &c.poses {
-            Some(p) => {
-                let poses = calib_io::read_view_poses(&dir.join(p))?;
-                if poses.len() != config.views.angles_deg.len() {
-                    return Err(bad(format!(
+        if let (Some(p), Some(poses)) = (&c.poses, &poses) {
+            if poses.len() != config.views.angles_deg.len() {
+                return Err(bad(
+                    Path::new("scan.toml"),
+                    format!(
                         "{} holds {} view poses for {} views",
                         p.display(),
                         poses.len(),
                         config.views.angles_deg.len()
-                    )));
-                }
-                Some(poses)
+                    ),
+                ));
             }
-            None => None,
-        };
+        }
+        let poses = poses.filter(|_| c.poses.is_some());
         Ok(Self {
             dir: dir.to_path_buf(),
             config,
@@ -256,6 +280,7 @@ impl Scan {
             screen,
             turntable,
             poses,
+            _checked: (),
         })
     }
 

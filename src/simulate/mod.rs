@@ -151,7 +151,7 @@ fn simulate_into(
     let t0 = Instant::now();
     ensure_valid(mesh).context("the mesh to simulate is not a valid closed surface")?;
     let object = Placed::new(mesh, o)?;
-    let scan = rig_scan(dir, o, &object);
+    let scan = rig_scan(dir, o, &object)?;
     std::fs::create_dir_all(dir.join("truth"))
         .with_context(|| format!("cannot create {}", dir.display()))?;
     scan.save()?;
@@ -207,7 +207,7 @@ impl Placed {
 /// object filling `fill` of the image height (and fitting its width), the monitor
 /// `screen_distance_mm` behind the axis, centred on the optical axis and facing the camera, the
 /// turntable axis vertical (world +y = camera −y), `views` even angles.
-fn rig_scan(dir: &Path, o: &SimulateOptions, object: &Placed) -> Scan {
+fn rig_scan(dir: &Path, o: &SimulateOptions, object: &Placed) -> Result<Scan> {
     let d = o.camera_distance_mm;
     let f = (o.fill * o.height as f64 * d / object.height_y)
         .min(0.9 * o.width as f64 * (d - object.radius_xz) / (2.0 * object.radius_xz));
@@ -231,11 +231,6 @@ fn rig_scan(dir: &Path, o: &SimulateOptions, object: &Placed) -> Scan {
         pitch_mm: o.pitch_mm,
         pose: Isometry3::from_parts(centre, UnitQuaternion::identity()),
     };
-    let turntable = Turntable {
-        axis_point: Point3::new(0.0, 0.0, d),
-        axis_dir: -Vector3::y_axis(),
-        angles_deg: Turntable::even_angles(o.views),
-    };
     let config = ScanConfig {
         ior: o.ior,
         calibration: CalibrationFiles {
@@ -245,7 +240,7 @@ fn rig_scan(dir: &Path, o: &SimulateOptions, object: &Placed) -> Scan {
             poses: None,
         },
         views: Views {
-            angles_deg: turntable.angles_deg.clone(),
+            angles_deg: Turntable::even_angles(o.views),
         },
         patterns: Patterns {
             kind: PatternKind::Graycode,
@@ -254,14 +249,8 @@ fn rig_scan(dir: &Path, o: &SimulateOptions, object: &Placed) -> Scan {
             phase_shift: o.phase_shift,
         },
     };
-    Scan {
-        dir: dir.to_path_buf(),
-        config,
-        camera,
-        screen,
-        turntable,
-        poses: None,
-    }
+    let axis = (Point3::new(0.0, 0.0, d), -Vector3::y_axis());
+    Ok(Scan::new(dir, config, camera, screen, axis, None)?)
 }
 
 /// Traces the background and every view, and writes what the options ask for: captures or the
