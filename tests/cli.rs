@@ -115,21 +115,16 @@ fn bad_files_fail_with_one_line_and_no_panic() {
             ],
             "cannot open",
         ),
-        (
-            vec![
-                "eval".into(),
-                p("good.ply"),
-                "--reference".into(),
-                p("good.ply"),
-                "--threshold-mm=0,1".into(),
-            ],
-            "threshold",
-        ),
     ];
     for (args, needle) in cases {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
         assert_clean_failure(&glasscan(&args), needle);
     }
+    // Out-of-range arguments are rejected when parsed (exit 2), naming the option.
+    let good = p("good.ply");
+    let o = glasscan(&["eval", &good, "--reference", &good, "--threshold-mm=0,1"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--threshold-mm"), "{}", stderr(&o));
 }
 
 #[test]
@@ -224,7 +219,10 @@ fn eval_error_map_colours_the_distance_to_the_reference() {
         let c = *img.at_2d::<Vec3b>(y - 200, x - 200).unwrap();
         assert_eq!(c, Vec3b::from([255, 255, 255]), "panel {k} corner");
     }
-    assert_clean_failure(&run("0"), "--error-max-mm");
+    // Out of range: rejected when parsed (exit 2), naming the option.
+    let o = run("0");
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--error-max-mm"), "{}", stderr(&o));
 }
 
 #[test]

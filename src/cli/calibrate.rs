@@ -34,7 +34,7 @@ pub struct BoardArgs {
     #[arg(long, value_parser = Board::parse_size)]
     pub board: (u32, u32),
     /// Size of a board square, mm.
-    #[arg(long = "square-mm")]
+    #[arg(long = "square-mm", value_parser = super::common::positive)]
     pub square_mm: f64,
 }
 
@@ -74,7 +74,7 @@ pub struct ScreenArgs {
     /// The scan folder: scan.toml, the camera file, captures/background/.
     pub scan: PathBuf,
     /// Monitor pixel pitch, mm (default: the scan's current screen file's).
-    #[arg(long = "pitch-mm")]
+    #[arg(long = "pitch-mm", value_parser = super::common::positive)]
     pub pitch_mm: Option<f64>,
     /// The screen file to write (default: the one scan.toml names).
     #[arg(short, long)]

@@ -22,12 +22,13 @@ pub struct EvalArgs {
     #[arg(
         long = "threshold-mm",
         value_delimiter = ',',
-        default_value = "0.5,1.0"
+        default_value = "0.5,1.0",
+        value_parser = super::common::positive
     )]
     pub thresholds_mm: Vec<f64>,
     /// Surface samples drawn on each mesh.
-    #[arg(long, default_value_t = 1_000_000)]
-    pub samples: usize,
+    #[arg(long, default_value_t = 1_000_000, value_parser = clap::value_parser!(u64).range(1..))]
+    pub samples: u64,
     /// Seed of the surface sampling.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -38,21 +39,11 @@ pub struct EvalArgs {
     #[arg(long = "error-map")]
     pub error_map: Option<PathBuf>,
     /// The distance shown red in the error map, mm (default: the largest F-score threshold).
-    #[arg(long = "error-max-mm")]
+    #[arg(long = "error-max-mm", value_parser = super::common::positive)]
     pub error_max_mm: Option<f64>,
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
-    if args.samples == 0 {
-        bail!("--samples must be at least 1");
-    }
-    if let Some(t) = args
-        .thresholds_mm
-        .iter()
-        .find(|t| !(t.is_finite() && **t > 0.0))
-    {
-        bail!("--threshold-mm {t}: thresholds must be positive numbers of mm");
-    }
     let inputs = [args.result.as_path(), args.reference.as_path()];
     if let Some(p) = &args.json {
         ensure_extension(p, "--json", &["json"])?;
@@ -65,7 +56,7 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     let result = read_mesh(&args.result)?;
     let reference = read_mesh(&args.reference)?;
     let options = EvalOptions {
-        samples: args.samples,
+        samples: usize::try_from(args.samples).unwrap_or(usize::MAX),
         thresholds_mm: args.thresholds_mm.clone(),
         seed: args.seed,
     };

@@ -19,7 +19,7 @@ pub struct ImportDrtArgs {
     #[arg(long, value_enum)]
     pub camera: Option<CameraArg>,
     /// Refractive index of the object (DRT's files do not record it).
-    #[arg(long, default_value_t = 1.4723)]
+    #[arg(long, default_value_t = 1.4723, value_parser = super::common::ior)]
     pub ior: f64,
     /// Replace a non-empty output folder (whole, once the import succeeded).
     #[arg(long)]
@@ -33,12 +33,6 @@ pub enum CameraArg {
 }
 
 pub fn run(a: &ImportDrtArgs) -> Result<()> {
-    if !(a.ior > 1.0 && a.ior.is_finite()) {
-        anyhow::bail!(
-            "--ior {}: a solid object's refractive index is above 1",
-            a.ior
-        );
-    }
     let bar = super::common::bar("import", DRT_VIEWS);
     let camera = a.camera.map(|c| match c {
         CameraArg::Pointgrey => DrtCamera::PointGrey,

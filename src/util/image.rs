@@ -1,23 +1,26 @@
 //! Image output through OpenCV, atomic like every output.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use opencv::core::{Mat, Point, Scalar, Vector};
 use opencv::imgproc::{put_text, FONT_HERSHEY_SIMPLEX, LINE_AA};
 
-/// Writes an image (8- or 16-bit PNG, fast compression) atomically: OpenCV writes a temporary
-/// file beside `path`, which is then renamed.
+use super::atomic::write_atomic;
+
+/// Writes an image (8- or 16-bit PNG, fast compression) atomically: OpenCV encodes it in
+/// memory, and the bytes go through [`write_atomic`] (a temporary file beside `path`, renamed).
 pub fn write_png(path: &Path, img: &impl opencv::core::ToInputArray) -> Result<()> {
-    let tmp: PathBuf = path.with_extension("tmp.png");
+    super::paths::ensure_extension(path, "output", &["png"])?;
     let params = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_PNG_COMPRESSION, 1]);
-    if !opencv::imgcodecs::imwrite(&tmp, img, &params)
-        .with_context(|| format!("cannot write {}", path.display()))?
+    let mut bytes = Vector::<u8>::new();
+    if !opencv::imgcodecs::imencode(".png", img, &mut bytes, &params)
+        .with_context(|| format!("cannot encode {}", path.display()))?
     {
-        bail!("OpenCV could not write {}", path.display());
+        bail!("OpenCV could not encode {}", path.display());
     }
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+    write_atomic(path, |w| w.write_all(bytes.as_slice()))
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Writes `data` (row-major pixels of `width` × `height`, any OpenCV pixel type) as a PNG.
