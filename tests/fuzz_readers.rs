@@ -275,12 +275,7 @@ fn drt_import_survives_hostile_shapes() {
         any::<bool>(),
         -2.0f64..2.0,
     );
-    let base = runner();
-    let cases = base.config().cases.min(64);
-    let mut r = TestRunner::new(Config {
-        cases,
-        ..base.config().clone()
-    });
+    let mut r = runner();
     r.run(&strategy, |(mask, pos, proj, big, value)| {
         let file = dir.path().join("f.h5");
         let f = hdf5::File::create(&file).unwrap();
