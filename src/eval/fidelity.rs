@@ -51,9 +51,10 @@ pub fn check(
     let lost = |why: String| Err(FidelityError::Lost(why));
     let (vi, vo) = (validate(input), validate(output));
     if !vo.is_valid() {
+        let defects: Vec<String> = vo.defects.iter().map(|d| d.to_string()).collect();
         return lost(format!(
-            "the result is not a valid surface ({:?})",
-            vo.defects
+            "the result is not a valid surface ({})",
+            defects.join("; ")
         ));
     }
     if (vo.components, vo.genus) != (vi.components, vi.genus) {
