@@ -29,8 +29,9 @@ deps:
 demo: deps
 	$(CARGO) run --release -- demo --out demo-out
 
-# The tests also compare against OpenCV's own sample calibration (package opencv-doc).
-test: DEBIAN_PACKAGES += opencv-doc
+# The tests also compare against OpenCV's own sample calibration (package opencv-doc) and show
+# the capture's pattern window in a virtual X server (package xvfb).
+test: DEBIAN_PACKAGES += opencv-doc xvfb
 test: deps
 	$(CARGO) test --release
 

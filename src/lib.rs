@@ -8,6 +8,7 @@
 
 pub mod bench;
 pub mod calibrate;
+pub mod capture;
 pub mod cli;
 pub mod decode;
 pub mod eval;

@@ -83,15 +83,13 @@ impl GrayCode {
         )
     }
 
-    /// Writes the images to show on the monitor into `dir` (named as the captures are), through
-    /// OpenCV's own `GrayCodePattern::generate`, plus `ORDER.txt` saying what each one is.
-    pub fn write_images(&self, dir: &std::path::Path) -> anyhow::Result<()> {
-        use anyhow::Context;
+    /// The images to show on the monitor, in order, 8-bit grey: OpenCV's own
+    /// `GrayCodePattern::generate`, then white and black.
+    pub fn images(&self) -> anyhow::Result<Vec<opencv::core::Mat>> {
         use opencv::core::{Mat, Scalar, Vector, CV_8UC1};
         use opencv::prelude::*;
         use opencv::structured_light::{GrayCodePattern, GrayCodePattern_Params};
 
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let mut params = GrayCodePattern_Params::default()?;
         params.set_width(self.width as i32);
         params.set_height(self.height as i32);
@@ -99,39 +97,52 @@ impl GrayCode {
         let mut images = Vector::<Mat>::new();
         generator.generate(&mut images)?;
         let (h, w) = (self.height as i32, self.width as i32);
-        images.push(Mat::new_rows_cols_with_default(
-            h,
-            w,
-            CV_8UC1,
-            Scalar::all(255.0),
-        )?);
-        images.push(Mat::new_rows_cols_with_default(
-            h,
-            w,
-            CV_8UC1,
-            Scalar::all(0.0),
-        )?);
-        let names = self.file_names();
-        if images.len() != names.len() {
+        for level in [255.0, 0.0] {
+            images.push(Mat::new_rows_cols_with_default(
+                h,
+                w,
+                CV_8UC1,
+                Scalar::all(level),
+            )?);
+        }
+        if images.len() != self.file_names().len() {
             anyhow::bail!(
                 "OpenCV generated {} images, expected {}",
                 images.len(),
-                names.len()
+                self.file_names().len()
             );
         }
+        Ok(images.to_vec())
+    }
+
+    /// Writes the images to show on the monitor into `dir` (named as the captures are), plus
+    /// `ORDER.txt` saying what each one is.
+    pub fn write_images(&self, dir: &std::path::Path) -> anyhow::Result<()> {
+        use anyhow::Context;
+
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let mut order = format!(
             "Gray-code patterns for a {}x{} monitor, in the order of OpenCV's structured_light::GrayCodePattern\n\
              (generate(), then getImagesForShadowMasks()). Show them in this order; name the captures the same.\n\n",
             self.width, self.height
         );
-        for (i, (img, name)) in images.iter().zip(&names).enumerate() {
-            crate::util::image::write_png(&dir.join(name), &img)?;
+        for (i, (img, name)) in self.images()?.iter().zip(self.file_names()).enumerate() {
+            crate::util::image::write_png(&dir.join(&name), img)?;
             order += &format!("{name}\t{}\n", self.describe(i));
         }
         let path = dir.join("ORDER.txt");
         crate::util::atomic::write_atomic(&path, |w| w.write_all(order.as_bytes()))
             .with_context(|| format!("cannot write {}", path.display()))
     }
+}
+
+/// File names of a view's captures: the Gray code's, then the phase shift's if there is one.
+pub fn capture_names(code: &GrayCode, phase: Option<&PhaseShift>) -> Vec<String> {
+    let mut names = code.file_names();
+    if let Some(p) = phase {
+        names.extend(p.file_names());
+    }
+    names
 }
 
 fn bits_for(n: u32) -> u32 {
@@ -185,6 +196,16 @@ impl PhaseShift {
         )
     }
 
+    /// Image `i` (in [`Self::file_names`] order) for a `width` × `height` monitor: 8-bit grey,
+    /// row-major.
+    pub fn image(&self, i: usize, width: u32, height: u32) -> Vec<u8> {
+        let (k, along_u) = ((i as u32) % self.steps, (i as u32) < self.steps);
+        (0..height)
+            .flat_map(|y| (0..width).map(move |x| (x, y)))
+            .map(|(x, y)| (255.0 * self.value(if along_u { x } else { y } as f64, k)).round() as u8)
+            .collect()
+    }
+
     /// Writes the images for a `width` × `height` monitor into `dir`.
     pub fn write_images(
         &self,
@@ -193,13 +214,7 @@ impl PhaseShift {
         height: u32,
     ) -> anyhow::Result<()> {
         for (i, name) in self.file_names().iter().enumerate() {
-            let (k, along_u) = ((i as u32) % self.steps, (i as u32) < self.steps);
-            let img: Vec<u8> = (0..height)
-                .flat_map(|y| (0..width).map(move |x| (x, y)))
-                .map(|(x, y)| {
-                    (255.0 * self.value(if along_u { x } else { y } as f64, k)).round() as u8
-                })
-                .collect();
+            let img = self.image(i, width, height);
             crate::util::image::write_pixels(&dir.join(name), width, height, &img)?;
         }
         Ok(())

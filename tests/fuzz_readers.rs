@@ -11,7 +11,7 @@ use std::sync::OnceLock;
 use glasscan::import::drt::import_drt;
 use glasscan::mesh::io::{read_mesh, write_mesh, write_mesh_as, MeshFormat};
 use glasscan::mesh::shapes::icosphere;
-use glasscan::reconstruct::config::Settings;
+use glasscan::reconstruct::config::{Preset, Settings};
 use glasscan::rig::calib_io::{read_view_poses, write_view_poses};
 use glasscan::scan::decoded::{read_rays, DecodedScan};
 use glasscan::scan::Scan;
@@ -218,7 +218,7 @@ fn config_reader_survives_mutated_files() {
         smoothness = { tolerant = { tau = 0.5 } }\nmax_refractions = 2\n";
     let (ok, _) = fuzz("c.toml", sample, |p| {
         let text = String::from_utf8_lossy(&std::fs::read(p).unwrap()).into_owned();
-        match Settings::preset("fast").unwrap().with_overrides(&text) {
+        match Settings::preset(Preset::Fast).with_overrides(&text) {
             Ok(s) if s.check().is_ok() => s.edge_mm(s.stages - 1, 100.0).is_finite(),
             _ => false,
         }

@@ -1,5 +1,6 @@
 //! Benchmarks behind `glasscan bench …`: they measure what they name and print ratios.
 
+pub mod calibrated;
 pub mod gradient;
 pub mod reconstruct;
 pub mod remesh;

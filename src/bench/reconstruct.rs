@@ -21,12 +21,65 @@ use crate::decode::{decode_scan, DecodeOptions};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::hull::{visual_hull, HullOptions};
 use crate::mesh::io::read_mesh;
-use crate::reconstruct::config::Settings;
+use crate::mesh::TriMesh;
+use crate::reconstruct::config::{Preset, Settings};
+use crate::reconstruct::pipeline::{reconstruct_scan, Job};
 use crate::reconstruct::plot::time_accuracy_plot;
 use crate::reconstruct::{self, stage_path, Existing, Progress, Start};
 use crate::scan::Scan;
-use crate::simulate::{simulate, SimulateOptions};
+use crate::simulate::{simulate, SimulateOptions, Transport};
 use crate::util::atomic::write_atomic;
+
+/// The scans the benchmark simulates, 72 views each.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum ScanKind {
+    /// Decoded-only: exact correspondences from the simulator, no captures.
+    Exact,
+    /// Captures with sensor noise (σ = 2 grey levels), 0.7 px blur and 4 samples per pixel,
+    /// decoded by `glasscan decode`.
+    Noisy,
+    /// As `noisy`, with the physical light transport (Fresnel reflections, internal reflections
+    /// and their ghosts).
+    Physical,
+}
+
+impl ScanKind {
+    /// The name used on the command line, in folder names and in the tables.
+    pub fn name(self) -> &'static str {
+        match self {
+            ScanKind::Exact => "exact",
+            ScanKind::Noisy => "noisy",
+            ScanKind::Physical => "physical",
+        }
+    }
+
+    /// The simulator's options for this kind of scan.
+    pub fn simulate_options(self) -> SimulateOptions {
+        let noisy = self != ScanKind::Exact;
+        SimulateOptions {
+            views: SCAN_VIEWS,
+            decoded_only: !noisy,
+            spp: if noisy { 4 } else { 1 },
+            noise: if noisy { 2.0 } else { 0.0 },
+            blur_px: if noisy { 0.7 } else { 0.0 },
+            transport: if self == ScanKind::Physical {
+                Transport::Physical
+            } else {
+                Transport::Simple
+            },
+            // The bench's own work folder: a scan left half made (decode interrupted) is replaced.
+            force: true,
+            ..Default::default()
+        }
+    }
+}
+
+impl std::fmt::Display for ScanKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
 
 /// What to run.
 #[derive(Clone, Debug)]
@@ -36,19 +89,18 @@ pub struct BenchOptions {
     /// Scans, runs and results go here.
     pub work: PathBuf,
     pub objects: Vec<String>,
-    pub presets: Vec<String>,
+    pub presets: Vec<Preset>,
     /// View counts, each taken evenly from the 72.
     pub views: Vec<usize>,
-    /// Which scans: "exact" (decoded-only) and/or "noisy" (noise 2, blur 0.7, decoded).
-    pub scans: Vec<String>,
+    pub scans: Vec<ScanKind>,
 }
 
 /// One reconstruction, evaluated.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct BenchRun {
     pub object: String,
-    pub scan: String,
-    pub preset: String,
+    pub scan: ScanKind,
+    pub preset: Preset,
     pub views: usize,
     /// Hull + stages, seconds (for `drt`: up to the budget).
     pub seconds: f64,
@@ -74,84 +126,35 @@ pub fn run_bench(
     progress: &dyn Progress,
     log: &dyn Fn(&str),
 ) -> Result<Vec<BenchRun>> {
-    for n in &o.views {
-        if *n == 0 || *n > SCAN_VIEWS {
-            bail!("view count {n}: choose 1..={SCAN_VIEWS}");
-        }
-    }
-    for p in &o.presets {
-        Settings::preset(p).with_context(|| format!("unknown preset '{p}'"))?;
-    }
-    for s in &o.scans {
-        if s != "exact" && s != "noisy" {
-            bail!("scan kind '{s}': choose exact or noisy");
-        }
-    }
+    check_options(o)?;
     std::fs::create_dir_all(&o.work)
         .with_context(|| format!("cannot create {}", o.work.display()))?;
-    let results_path = o.work.join("results.json");
-    let mut results: Vec<BenchRun> = if results_path.is_file() {
-        serde_json::from_str(&std::fs::read_to_string(&results_path)?)
-            .with_context(|| format!("{}: not a bench results file", results_path.display()))?
-    } else {
-        Vec::new()
-    };
+    let mut results = read_results(&o.work)?;
     // drt last, so that the other presets set its budget.
     let mut presets = o.presets.clone();
-    presets.sort_by_key(|p| p == "drt");
+    presets.sort_by_key(|p| *p == Preset::Drt);
     for object in &o.objects {
         let mesh_path = o.meshes.join(format!("{object}_scan.ply"));
-        if !mesh_path.is_file() {
-            bail!(
-                "{}: no such mesh (--meshes names the folder of {{object}}_scan.ply)",
-                mesh_path.display()
-            );
-        }
-        for kind in &o.scans {
+        for &kind in &o.scans {
             let scan_dir = o.work.join("scans").join(format!("{object}_{kind}"));
-            ensure_scan(&mesh_path, &scan_dir, kind == "noisy", log)?;
+            ensure_scan(&mesh_path, &scan_dir, kind, log)?;
             let scan = Scan::open(&scan_dir)?;
             let truth = read_mesh(&scan_dir.join("ground_truth.ply"))?;
-            for &n in &o.views {
-                for preset in &presets {
-                    let done = |r: &BenchRun| {
-                        r.object == *object
-                            && r.scan == *kind
-                            && r.preset == *preset
-                            && r.views == n
+            for &views in &o.views {
+                for &preset in &presets {
+                    let case = Case {
+                        object,
+                        kind,
+                        preset,
+                        views,
                     };
-                    if results.iter().any(done) {
+                    if results.iter().any(|r| case.is(r)) {
                         continue;
                     }
-                    let budget = (preset == "drt")
-                        .then(|| {
-                            results
-                                .iter()
-                                .filter(|r| {
-                                    r.object == *object
-                                        && r.scan == *kind
-                                        && r.views == n
-                                        && r.preset != "drt"
-                                })
-                                .map(|r| r.seconds)
-                                .fold(None, |m: Option<f64>, s| Some(m.map_or(s, |m| m.max(s))))
-                        })
+                    let budget = (preset == Preset::Drt)
+                        .then(|| case.slowest_other(&results))
                         .flatten();
-                    log(&format!(
-                        "{object} ({kind}), {preset}, {n} views{}",
-                        budget.map_or(String::new(), |b| format!(", budget {b:.0} s"))
-                    ));
-                    let run_dir = o
-                        .work
-                        .join("runs")
-                        .join(format!("{object}_{kind}_{preset}_v{n}"));
-                    let r = run_one(
-                        &scan, &truth, object, kind, preset, n, budget, &run_dir, progress,
-                    )?;
-                    log(&format!(
-                        "  {:.1} s, accuracy {:.3} mm, completeness {:.3} mm, F@0.5 {:.3}, F@1 {:.3}",
-                        r.seconds, r.accuracy_mm, r.completeness_mm, r.fscore_05, r.fscore_1
-                    ));
+                    let r = run_case(&case, &scan, &truth, budget, &o.work, progress, log)?;
                     results.push(r);
                     write_results(&o.work, &results)?;
                 }
@@ -162,30 +165,88 @@ pub fn run_bench(
     Ok(results)
 }
 
+/// View counts in range and every object's mesh present, before any work.
+fn check_options(o: &BenchOptions) -> Result<()> {
+    for n in &o.views {
+        if *n == 0 || *n > SCAN_VIEWS {
+            bail!("view count {n}: choose 1..={SCAN_VIEWS}");
+        }
+    }
+    for object in &o.objects {
+        let mesh_path = o.meshes.join(format!("{object}_scan.ply"));
+        if !mesh_path.is_file() {
+            bail!(
+                "{}: no such mesh (--meshes names the folder of {{object}}_scan.ply)",
+                mesh_path.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The runs `WORK/results.json` holds (none when there is no such file).
+fn read_results(work: &Path) -> Result<Vec<BenchRun>> {
+    let path = work.join("results.json");
+    if !path.is_file() {
+        return Ok(Vec::new());
+    }
+    serde_json::from_str(&std::fs::read_to_string(&path)?)
+        .with_context(|| format!("{}: not a bench results file", path.display()))
+}
+
+/// One reconstruction of the benchmark.
+struct Case<'a> {
+    object: &'a str,
+    kind: ScanKind,
+    preset: Preset,
+    views: usize,
+}
+
+impl Case<'_> {
+    /// Whether `r` is this case's result.
+    fn is(&self, r: &BenchRun) -> bool {
+        r.object == self.object
+            && r.scan == self.kind
+            && r.preset == self.preset
+            && r.views == self.views
+    }
+
+    /// The longest time of another preset on the same scan and views (drt's budget).
+    fn slowest_other(&self, results: &[BenchRun]) -> Option<f64> {
+        results
+            .iter()
+            .filter(|r| {
+                r.object == self.object
+                    && r.scan == self.kind
+                    && r.views == self.views
+                    && r.preset != Preset::Drt
+            })
+            .map(|r| r.seconds)
+            .reduce(f64::max)
+    }
+
+    fn label(&self) -> String {
+        format!(
+            "{}_{}_{}_v{}",
+            self.object, self.kind, self.preset, self.views
+        )
+    }
+}
+
 /// Simulates (and for `noisy`, decodes) the scan unless `dir` already holds it.
-fn ensure_scan(mesh_path: &Path, dir: &Path, noisy: bool, log: &dyn Fn(&str)) -> Result<()> {
+fn ensure_scan(mesh_path: &Path, dir: &Path, kind: ScanKind, log: &dyn Fn(&str)) -> Result<()> {
     if dir.join("decoded").join("summary.json").is_file() {
         return Ok(());
     }
     let mesh = read_mesh(mesh_path)?;
-    let o = SimulateOptions {
-        views: SCAN_VIEWS,
-        decoded_only: !noisy,
-        spp: if noisy { 4 } else { 1 },
-        noise: if noisy { 2.0 } else { 0.0 },
-        blur_px: if noisy { 0.7 } else { 0.0 },
-        // The bench's own work folder: a scan left half made (decode interrupted) is replaced.
-        force: true,
-        ..Default::default()
-    };
     log(&format!(
         "simulating {} into {}",
         mesh_path.display(),
         dir.display()
     ));
     let t0 = Instant::now();
-    simulate(&mesh, dir, &o, |_| ())?;
-    if noisy {
+    simulate(&mesh, dir, &kind.simulate_options(), |_| ())?;
+    if kind != ScanKind::Exact {
         let scan = Scan::open(dir)?;
         let views: Vec<usize> = (0..SCAN_VIEWS).collect();
         decode_scan(&scan, &views, &DecodeOptions::default(), |_| ())?;
@@ -199,23 +260,48 @@ fn spread_views(n: usize, total: usize) -> Vec<usize> {
     (0..n).map(|k| k * total / n).collect()
 }
 
-#[allow(clippy::too_many_arguments)]
-fn run_one(
+/// Runs and evaluates one case, with its log lines.
+fn run_case(
+    case: &Case,
     scan: &Scan,
-    truth: &crate::mesh::TriMesh,
-    object: &str,
-    kind: &str,
-    preset: &str,
-    n: usize,
+    truth: &TriMesh,
+    budget: Option<f64>,
+    work: &Path,
+    progress: &dyn Progress,
+    log: &dyn Fn(&str),
+) -> Result<BenchRun> {
+    log(&format!(
+        "{} ({}), {}, {} views{}",
+        case.object,
+        case.kind,
+        case.preset,
+        case.views,
+        budget.map_or(String::new(), |b| format!(", budget {b:.0} s"))
+    ));
+    let dir = work.join("runs").join(case.label());
+    let r = run_one(case, scan, truth, budget, &dir, progress)?;
+    log(&format!(
+        "  {:.1} s, accuracy {:.3} mm, completeness {:.3} mm, F@0.5 {:.3}, F@1 {:.3}",
+        r.seconds, r.accuracy_mm, r.completeness_mm, r.fscore_05, r.fscore_1
+    ));
+    Ok(r)
+}
+
+/// A reconstruction from the visual hull through the pipeline's entry point, stopped at
+/// `budget` seconds (after the stage that passes it) when one is given.
+fn run_one(
+    case: &Case,
+    scan: &Scan,
+    truth: &TriMesh,
     budget: Option<f64>,
     dir: &Path,
     progress: &dyn Progress,
 ) -> Result<BenchRun> {
-    let settings = Settings::preset(preset).expect("checked");
+    let settings = Settings::preset(case.preset);
     if dir.exists() {
         std::fs::remove_dir_all(dir).with_context(|| format!("cannot clear {}", dir.display()))?;
     }
-    let views = spread_views(n, scan.config.views.angles_deg.len());
+    let views = spread_views(case.views, scan.config.views.angles_deg.len());
     let t0 = Instant::now();
     let (inputs, _) = reconstruct::load_inputs(scan, &views, settings.target_weights)?;
     let (hull, _) = visual_hull(
@@ -224,42 +310,18 @@ fn run_one(
         &indicatif::ProgressBar::hidden(),
     )?;
     let seconds_hull = t0.elapsed().as_secs_f64();
-    let stop = Arc::new(AtomicBool::new(false));
-    if let Some(b) = budget {
-        let stop = stop.clone();
-        let left = (b - seconds_hull).max(0.0);
-        std::thread::spawn(move || {
-            std::thread::sleep(Duration::from_secs_f64(left));
-            stop.store(true, Ordering::SeqCst);
-        });
-    }
-    // A run cut at the budget ends after a stage's commit; the stages it finished are read back.
-    let ck = reconstruct::run(
-        &inputs,
-        Start::Mesh(&hull),
-        &settings,
-        dir,
-        Existing::Nothing,
-        progress,
-        &stop,
-    )?
-    .checkpoint;
-    let quick = EvalOptions {
-        samples: 200_000,
-        ..EvalOptions::default()
+    let stop = stop_after(budget.map(|b| b - seconds_hull));
+    let job = Job {
+        scan,
+        views,
+        settings: settings.clone(),
+        start: Start::Mesh(&hull),
+        out: dir,
+        existing: Existing::Nothing,
     };
-    let mut curve = vec![(seconds_hull, evaluate(&hull, truth, &quick)?.accuracy_mm)];
-    let mut elapsed = seconds_hull;
-    let mut last = None;
-    for (s, st) in ck.stages.iter().enumerate() {
-        elapsed += st.seconds;
-        if budget.is_some_and(|b| elapsed > b) && last.is_some() {
-            break;
-        }
-        let mesh = read_mesh(&stage_path(dir, s))?;
-        curve.push((elapsed, evaluate(&mesh, truth, &quick)?.accuracy_mm));
-        last = Some((s, elapsed, mesh));
-    }
+    // A run cut at the budget ends after a stage's commit; the stages it finished are read back.
+    let ck = reconstruct_scan(job, progress, &stop)?.finished.checkpoint;
+    let (curve, last) = stage_curve(&hull, truth, seconds_hull, &ck.stages, budget, dir)?;
     let (s, seconds, mesh) = last.context("the run finished no stage")?;
     let e: EvalReport = evaluate(&mesh, truth, &EvalOptions::default())?;
     let f = |t: f64| {
@@ -269,10 +331,10 @@ fn run_one(
             .map_or(f64::NAN, |f| f.fscore)
     };
     Ok(BenchRun {
-        object: object.into(),
-        scan: kind.into(),
-        preset: preset.into(),
-        views: n,
+        object: case.object.into(),
+        scan: case.kind,
+        preset: case.preset,
+        views: case.views,
         seconds,
         seconds_hull,
         stages_done: s + 1,
@@ -284,6 +346,51 @@ fn run_one(
         faces: mesh.faces.len(),
         curve,
     })
+}
+
+/// A flag that turns true `seconds` from now (never, for `None`).
+fn stop_after(seconds: Option<f64>) -> Arc<AtomicBool> {
+    let stop = Arc::new(AtomicBool::new(false));
+    if let Some(left) = seconds {
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_secs_f64(left.max(0.0)));
+            stop.store(true, Ordering::SeqCst);
+        });
+    }
+    stop
+}
+
+/// The last stage within the budget and its mesh, with the stage at which the time passed it.
+type LastStage = Option<(usize, f64, TriMesh)>;
+
+/// (seconds, accuracy mm) after the hull and each stage up to the budget, and the last of those
+/// stages.
+fn stage_curve(
+    hull: &TriMesh,
+    truth: &TriMesh,
+    seconds_hull: f64,
+    stages: &[reconstruct::StageReport],
+    budget: Option<f64>,
+    dir: &Path,
+) -> Result<(Vec<(f64, f64)>, LastStage)> {
+    let quick = EvalOptions {
+        samples: 200_000,
+        ..EvalOptions::default()
+    };
+    let mut curve = vec![(seconds_hull, evaluate(hull, truth, &quick)?.accuracy_mm)];
+    let mut elapsed = seconds_hull;
+    let mut last = None;
+    for (s, st) in stages.iter().enumerate() {
+        elapsed += st.seconds;
+        if budget.is_some_and(|b| elapsed > b) && last.is_some() {
+            break;
+        }
+        let mesh = read_mesh(&stage_path(dir, s))?;
+        curve.push((elapsed, evaluate(&mesh, truth, &quick)?.accuracy_mm));
+        last = Some((s, elapsed, mesh));
+    }
+    Ok((curve, last))
 }
 
 /// Writes results.json, results.md and time_vs_accuracy.png.

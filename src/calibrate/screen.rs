@@ -16,15 +16,18 @@
 //! 3. The residuals are reported in monitor pixels; a pose whose residuals exceed the cells
 //!    (median normalised residual above 1) is flagged.
 
+use std::path::Path;
+
 use anyhow::{bail, Result};
 use nalgebra::{Isometry3, Matrix6, Point3, Translation3, UnitQuaternion, Vector3, Vector6};
 use opencv::core::{Mat, MatTraitConst, Point2d, Point3d, Vector};
 use rayon::prelude::*;
 
 use super::{camera_mats, pose_from_vectors};
-use crate::decode::DecodedCapture;
+use crate::decode::{decode_captures, DecodeOptions, DecodedCapture};
 use crate::patterns::GrayCode;
 use crate::rig::{Camera, Screen};
+use crate::scan::{background_dir, ScanConfig};
 
 /// Correspondences RANSAC draws from (a grid over the most precise pixels).
 pub const TARGET_POINTS: usize = 4000;
@@ -78,6 +81,32 @@ impl Correspondence {
         let s = |c: f64| (c * c / 12.0 + NOISE_FLOOR_PX * NOISE_FLOOR_PX).sqrt();
         (s(self.cell_u), s(self.cell_v))
     }
+}
+
+/// Decodes the background capture of the scan folder `dir` (`captures/background/`, the
+/// patterns of `config`) and solves the monitor pose from it.
+pub fn from_background(
+    dir: &Path,
+    config: &ScanConfig,
+    camera: &Camera,
+    pitch_mm: f64,
+) -> Result<ScreenCalibration> {
+    let background = background_dir(dir);
+    if !background.is_dir() {
+        bail!(
+            "{}: no background capture; capture the patterns without the object there (see the README: scan folder)",
+            background.display()
+        );
+    }
+    let code = config.graycode();
+    let cap = decode_captures(
+        &background,
+        &code,
+        config.patterns.phase_shift.as_ref(),
+        (camera.width, camera.height),
+        &DecodeOptions::default(),
+    )?;
+    calibrate_screen(&cap, &code, camera, pitch_mm)
 }
 
 /// Solves the monitor pose (monitor frame → camera frame) from a decoded background capture.

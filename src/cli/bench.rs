@@ -5,9 +5,13 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 
+use crate::bench::reconstruct::ScanKind;
 use crate::bench::trace::{self, TraceBenchOptions, TraceBenchReport};
+use crate::loss::refraction::ResidualForm;
 use crate::mesh::io::read_mesh;
 use crate::mesh::shapes;
+use crate::reconstruct::config::Preset;
+use crate::trace::path::NormalModel;
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCommand {
@@ -19,6 +23,26 @@ pub enum BenchCommand {
     Gradient(GradientArgs),
     /// The presets' speed/accuracy trade on simulated scans of the shared meshes.
     Reconstruct(ReconstructBenchArgs),
+    /// Reconstructions with the rig calibrated from simulated images beside the same with the
+    /// simulator's true calibration (noisy 72-view scans, a distorting lens).
+    Calibrated(CalibratedBenchArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct CalibratedBenchArgs {
+    /// Folder with the {object}_scan.ply meshes.
+    #[arg(long, default_value = "../shared/meshes")]
+    pub meshes: PathBuf,
+    /// Scans, runs, calibrated.json and calibrated.md go here; a rerun skips the objects
+    /// calibrated.json already holds.
+    #[arg(long, default_value = "target/bench-calibrated")]
+    pub work: PathBuf,
+    /// Objects, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "pig,horse,dog")]
+    pub objects: Vec<String>,
+    /// The preset of both reconstructions.
+    #[arg(long, value_enum, default_value_t = Preset::Balanced)]
+    pub preset: Preset,
 }
 
 #[derive(Args, Debug)]
@@ -36,16 +60,17 @@ pub struct ReconstructBenchArgs {
     /// Presets, comma-separated (drt gets the time of the slowest other preset).
     #[arg(
         long,
+        value_enum,
         value_delimiter = ',',
         default_value = "fast,balanced,accurate,drt"
     )]
-    pub presets: Vec<String>,
+    pub presets: Vec<Preset>,
     /// View counts, comma-separated, taken evenly from the scan's 72.
     #[arg(long, value_delimiter = ',', default_value = "72,36,18,9")]
     pub views: Vec<usize>,
     /// Scans: exact (decoded-only correspondences) and/or noisy (noise 2, blur 0.7, decoded).
-    #[arg(long, value_delimiter = ',', default_value = "exact,noisy")]
-    pub scans: Vec<String>,
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "exact,noisy")]
+    pub scans: Vec<ScanKind>,
 }
 
 #[derive(Args, Debug)]
@@ -61,10 +86,10 @@ pub struct GradientArgs {
     pub views: Option<String>,
     /// Normal model of the refraction term.
     #[arg(long, value_enum, default_value = "face")]
-    pub normals: NormalArg,
+    pub normals: NormalModel,
     /// Residual form: screen (mm on the monitor) or direction (DRT's code).
     #[arg(long, value_enum, default_value = "screen")]
-    pub form: FormArg,
+    pub form: ResidualForm,
     /// Paths with up to this many refractions (even) are used.
     #[arg(long = "max-refractions", default_value_t = 2)]
     pub max_refractions: u32,
@@ -74,18 +99,6 @@ pub struct GradientArgs {
     /// Also write the figures as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
-}
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum NormalArg {
-    Face,
-    Vertex,
-}
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum FormArg {
-    Screen,
-    Direction,
 }
 
 #[derive(Args, Debug)]
@@ -136,7 +149,25 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
         BenchCommand::Remesh(a) => run_remesh(a),
         BenchCommand::Gradient(a) => run_gradient(a),
         BenchCommand::Reconstruct(a) => run_reconstruct(a),
+        BenchCommand::Calibrated(a) => run_calibrated(a),
     }
+}
+
+fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
+    use crate::bench::calibrated::{run_calibrated_bench, CalibratedBenchOptions};
+    let o = CalibratedBenchOptions {
+        meshes: a.meshes.clone(),
+        work: a.work.clone(),
+        objects: a.objects.clone(),
+        preset: a.preset,
+    };
+    let bars = super::common::StageBars::new();
+    let log = |s: &str| bars.bar.suspend(|| eprintln!("{s}"));
+    let results = run_calibrated_bench(&o, &bars, &log)?;
+    bars.bar.finish_and_clear();
+    outln!("{}", std::fs::read_to_string(a.work.join("calibrated.md"))?);
+    outln!("{} objects", results.len());
+    Ok(())
 }
 
 fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
@@ -163,8 +194,7 @@ fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
 }
 
 fn run_gradient(a: &GradientArgs) -> Result<()> {
-    use crate::loss::refraction::{RefractionSettings, ResidualForm};
-    use crate::trace::path::NormalModel;
+    use crate::loss::refraction::RefractionSettings;
     if !(2..=crate::trace::path::MAX_TRAIL as u32).contains(&a.max_refractions) {
         anyhow::bail!(
             "--max-refractions {}: it must lie in 2..={}",
@@ -188,14 +218,8 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         ior: scan.config.ior,
         ior_air: crate::trace::refract::IOR_AIR,
         max_refractions: a.max_refractions,
-        normals: match a.normals {
-            NormalArg::Face => NormalModel::Face,
-            NormalArg::Vertex => NormalModel::Vertex,
-        },
-        form: match a.form {
-            FormArg::Screen => ResidualForm::Screen,
-            FormArg::Direction => ResidualForm::Direction,
-        },
+        normals: a.normals,
+        form: a.form,
         robust: crate::loss::Robust::L2,
     };
     eprintln!(

@@ -8,11 +8,10 @@ use clap::{Args, Subcommand};
 
 use crate::calibrate::board::{read_images, Board};
 use crate::calibrate::camera::{calibrate_camera, CameraOptions};
-use crate::calibrate::screen::calibrate_screen;
+use crate::calibrate::screen;
 use crate::calibrate::turntable::calibrate_turntable;
-use crate::decode::{decode_captures, DecodeOptions};
 use crate::rig::calib_io;
-use crate::scan::{background_dir, ScanConfig};
+use crate::scan::ScanConfig;
 
 #[derive(Subcommand, Debug)]
 pub enum CalibrateCommand {
@@ -164,23 +163,7 @@ fn screen(a: &ScreenArgs) -> Result<()> {
                 "give the monitor's pixel pitch with --pitch-mm (no screen file to take it from)"
             })?,
     };
-    let dir = background_dir(&a.scan);
-    if !dir.is_dir() {
-        bail!(
-            "{}: no background capture; capture the patterns without the object there (see the README: scan folder)",
-            dir.display()
-        );
-    }
-    let code = config.graycode();
-    let o = DecodeOptions::default();
-    let cap = decode_captures(
-        &dir,
-        &code,
-        config.patterns.phase_shift.as_ref(),
-        (camera.width, camera.height),
-        &o,
-    )?;
-    let cal = calibrate_screen(&cap, &code, &camera, pitch_mm)?;
+    let cal = screen::from_background(&a.scan, &config, &camera, pitch_mm)?;
     let out = a.output.clone().unwrap_or(screen_file);
     calib_io::write_screen(&out, &cal.screen)?;
     let t = cal.screen.pose.translation.vector;

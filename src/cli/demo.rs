@@ -17,7 +17,7 @@ use crate::hull::HullOptions;
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::shapes::ellipsoid;
 use crate::mesh::TriMesh;
-use crate::reconstruct::config::Settings;
+use crate::reconstruct::config::{Preset, Settings};
 use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
 use crate::reconstruct::{Existing, Start};
 use crate::scan::Scan;
@@ -127,7 +127,7 @@ fn pebble() -> TriMesh {
 
 /// The pipeline's entry point with the fast preset, from the visual hull.
 fn reconstruct(scan: &Scan, views: Vec<usize>, seed: u64, rec: &Path) -> Result<Outcome> {
-    let mut settings = Settings::preset("fast").expect("a built-in preset");
+    let mut settings = Settings::preset(Preset::Fast);
     settings.seed = seed;
     let job = Job {
         scan,

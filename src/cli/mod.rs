@@ -20,6 +20,7 @@ macro_rules! outln {
 
 mod bench;
 mod calibrate;
+mod capture;
 mod common;
 mod decode;
 mod demo;
@@ -61,6 +62,8 @@ enum Command {
     /// Calibrate the rig: camera, monitor pose, turntable axis.
     #[command(subcommand)]
     Calibrate(calibrate::CalibrateCommand),
+    /// Show the patterns on the monitor and grab them with the camera, view by view.
+    Capture(capture::CaptureArgs),
     /// The Gray-code images to show on the monitor, in OpenCV's order.
     Patterns(patterns::PatternsArgs),
     /// A synthetic scan of a mesh: calibration, captures and ground truth.
@@ -110,6 +113,7 @@ pub fn run() -> Result<()> {
         Command::Eval(a) => eval::run(&a),
         Command::Decode(a) => decode::run(&a),
         Command::Calibrate(c) => calibrate::run(&c),
+        Command::Capture(a) => capture::run(&a),
         Command::Patterns(a) => patterns::run(&a),
         Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),

@@ -12,7 +12,7 @@ use crate::hull::HullOptions;
 use crate::mesh::io::read_mesh;
 use crate::mesh::validate::ensure_valid;
 use crate::mesh::TriMesh;
-use crate::reconstruct::config::Settings;
+use crate::reconstruct::config::{Preset, Settings};
 use crate::reconstruct::output;
 use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
 use crate::reconstruct::Start;
@@ -26,8 +26,8 @@ pub struct ReconstructArgs {
     pub output: PathBuf,
     /// Settings: fast, balanced (the default: beats DRT's schedule at equal time on every
     /// benchmark scan), accurate, or drt (DRT's schedule and optimiser).
-    #[arg(long, default_value = "balanced")]
-    pub preset: String,
+    #[arg(long, value_enum, default_value_t = Preset::Balanced)]
+    pub preset: Preset,
     /// A TOML file overriding any of the preset's settings (see the README).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -82,12 +82,7 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
 
 /// The preset, with the config file's keys and the seed applied, range-checked.
 fn settings(a: &ReconstructArgs) -> Result<Settings> {
-    let mut settings = Settings::preset(&a.preset).with_context(|| {
-        format!(
-            "--preset {}: choose fast, balanced, accurate or drt",
-            a.preset
-        )
-    })?;
+    let mut settings = Settings::preset(a.preset);
     if let Some(path) = &a.config {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read {}", path.display()))?;

@@ -8,6 +8,7 @@ use clap::Args;
 use super::common::{bar, ior, non_negative, parse_size, positive, positive_share};
 use crate::mesh::io::read_mesh;
 use crate::patterns::PhaseShift;
+use crate::simulate::Transport;
 use crate::simulate::{simulate, SimulateOptions};
 use crate::simulate::{MAX_SPP, MAX_VIEWS};
 use crate::trace::path::NormalModel;
@@ -65,11 +66,16 @@ pub struct SimulateArgs {
     pub fill: f64,
     /// Normals the object refracts with: vertex (interpolated, a smooth object) or face (flat
     /// facets).
-    #[arg(long, default_value = "vertex", value_parser = parse_normals)]
+    #[arg(long, value_enum, default_value_t = NormalModel::Vertex)]
     pub normals: NormalModel,
-    /// No Fresnel transmission losses.
-    #[arg(long = "no-fresnel")]
+    /// No Fresnel transmission losses (simple transport).
+    #[arg(long = "no-fresnel", conflicts_with = "transport")]
     pub no_fresnel: bool,
+    /// Light transport of the captures: simple (one refracted path per area sample, the model
+    /// the reconstruction inverts) or physical (Fresnel reflection and refraction at every
+    /// interface, internal reflections and their ghosts).
+    #[arg(long, value_enum, default_value_t = Transport::Simple)]
+    pub transport: Transport,
     /// Also render N-step phase-shift images after the Gray code.
     #[arg(long = "phase-shift", value_parser = clap::value_parser!(u32).range(3..=64))]
     pub phase_steps: Option<u32>,
@@ -86,14 +92,6 @@ pub struct SimulateArgs {
     /// Period of the phase-shift sinusoid, monitor pixels.
     #[arg(long = "period-px", default_value_t = 64, requires = "phase_steps", value_parser = clap::value_parser!(u32).range(4..=65_536))]
     pub period_px: u32,
-}
-
-fn parse_normals(s: &str) -> Result<NormalModel, String> {
-    match s {
-        "face" => Ok(NormalModel::Face),
-        "vertex" => Ok(NormalModel::Vertex),
-        _ => Err(format!("'{s}': expected face or vertex")),
-    }
 }
 
 pub fn run(a: &SimulateArgs) -> Result<()> {
@@ -119,6 +117,7 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
             fill: a.fill,
             normals: a.normals,
             fresnel: !a.no_fresnel,
+            transport: a.transport,
             phase_shift: a.phase_steps.map(|steps| PhaseShift {
                 steps,
                 period_px: a.period_px,
@@ -177,5 +176,12 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
         r.median_footprint_px,
         r.direct_footprint_px
     );
+    if a.transport == Transport::Physical {
+        outln!(
+            "ghosts: {:.2} % of the light the object pixels receive came through a reflection ({:.2} % more was dropped: trapped or fainter than 1e-4)",
+            100.0 * r.ghost_share,
+            100.0 * r.dropped_share
+        );
+    }
     Ok(())
 }

@@ -70,10 +70,7 @@ pub fn decode_captures(
     size: (u32, u32),
     o: &DecodeOptions,
 ) -> Result<DecodedCapture> {
-    let mut names = code.file_names();
-    if let Some(p) = phase {
-        names.extend(p.file_names());
-    }
+    let names = crate::patterns::capture_names(code, phase);
     let mut mats = Vec::with_capacity(names.len());
     for name in &names {
         let path = dir.join(name);

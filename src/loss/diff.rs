@@ -2,7 +2,7 @@
 //!
 //! Each forward function returns its value and whatever its adjoint needs; each `*_adjoint`
 //! takes the adjoint of the output (∂L/∂output) and adds ∂L/∂input to the input adjoints.
-//! Every one is checked against central finite differences in `tests/gradients.rs`.
+//! Every one is checked against central finite differences in `tests/suite/gradients.rs`.
 
 use nalgebra::{Point3, Vector3};
 

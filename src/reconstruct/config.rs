@@ -9,6 +9,34 @@ use crate::loss::targets::TargetWeights;
 use crate::loss::Robust;
 use crate::trace::path::NormalModel;
 
+/// The built-in settings, from quickest to most accurate, and DRT's own schedule.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Preset {
+    Fast,
+    Balanced,
+    Accurate,
+    Drt,
+}
+
+impl Preset {
+    /// The name used on the command line and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Fast => "fast",
+            Preset::Balanced => "balanced",
+            Preset::Accurate => "accurate",
+            Preset::Drt => "drt",
+        }
+    }
+}
+
+impl std::fmt::Display for Preset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// The optimiser.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
@@ -38,7 +66,7 @@ pub enum Optimizer {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Settings {
-    pub preset: String,
+    pub preset: Preset,
     pub seed: u64,
     /// Remeshing stages; edge lengths from `start_edge` to `final_edge` with 1/length linear in
     /// the stage index, both as a share of the initial mesh's bounding-box diagonal.
@@ -119,8 +147,8 @@ fn check_optimizer(o: &Optimizer) -> Result<(), String> {
 }
 
 impl Settings {
-    /// The named preset.
-    pub fn preset(name: &str) -> Option<Self> {
+    /// The preset's settings.
+    pub fn preset(preset: Preset) -> Self {
         let large_steps = Optimizer::LargeSteps {
             lambda: 20.0,
             lr_edge: 0.3,
@@ -128,7 +156,7 @@ impl Settings {
             beta2: 0.999,
         };
         let base = Settings {
-            preset: name.to_string(),
+            preset,
             seed: 0,
             stages: 3,
             start_edge: 1.0 / 60.0,
@@ -151,16 +179,16 @@ impl Settings {
             target_weights: TargetWeights::Uniform,
             warmup_stages: 3,
         };
-        Some(match name {
-            "fast" => base,
-            "balanced" => Settings {
+        match preset {
+            Preset::Fast => base,
+            Preset::Balanced => Settings {
                 final_edge: 1.0 / 250.0,
                 iterations: 150,
                 refraction_views: 4,
                 silhouette_views: 8,
                 ..base
             },
-            "accurate" => Settings {
+            Preset::Accurate => Settings {
                 stages: 5,
                 final_edge: 1.0 / 350.0,
                 iterations: 300,
@@ -173,7 +201,7 @@ impl Settings {
             // ray, 2e-3·217.5/H per contour edge, 0.08·mean edge/10 per edge, H = 960); the
             // weights here turn glasscan's means into those sums for a 1280×960 view of a
             // ~250 mm object (~1e5 rays, ~2e3 contour edges per view, ~1.4e5 edges).
-            "drt" => Settings {
+            Preset::Drt => Settings {
                 stages: 20,
                 start_edge: 1.0 / 30.0,
                 final_edge: 1.0 / 300.0,
@@ -198,8 +226,7 @@ impl Settings {
                 warmup_stages: 0,
                 ..base
             },
-            _ => return None,
-        })
+        }
     }
 
     /// The preset's settings with the keys of a TOML file (any subset of [`Settings`]'s)
@@ -245,7 +272,7 @@ impl Settings {
                 return bad(k, &format!("must lie in 1..={max}"));
             }
         }
-        let drt_stages = Settings::preset("drt").expect("built-in").stages;
+        let drt_stages = Settings::preset(Preset::Drt).stages;
         if self.warmup_stages > drt_stages {
             return bad(
                 "warmup_stages",
@@ -313,7 +340,7 @@ impl Settings {
                 target_weights: self.target_weights,
                 start_edge: self.start_edge,
                 final_edge: self.start_edge,
-                ..Settings::preset("drt").expect("built-in")
+                ..Settings::preset(Preset::Drt)
             };
             (drt, g)
         } else {
@@ -341,7 +368,7 @@ mod tests {
 
     #[test]
     fn target_weights_are_a_setting() {
-        let s = Settings::preset("fast").unwrap();
+        let s = Settings::preset(Preset::Fast);
         assert_eq!(s.target_weights, TargetWeights::Uniform);
         let s = s.with_overrides("target_weights = \"cell\"\n").unwrap();
         assert_eq!(s.target_weights, TargetWeights::Cell);

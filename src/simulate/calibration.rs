@@ -17,7 +17,7 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::{write_sensor_image, SimulateOptions};
 use crate::calibrate::board::Board;
@@ -34,13 +34,17 @@ const WHITE: f32 = 225.0;
 const BEHIND: f32 = 90.0;
 
 /// What `calibration/setup.json` records.
-#[derive(Serialize)]
-struct Setup {
-    board: String,
-    camera_square_mm: f64,
-    turntable_square_mm: f64,
-    turntable_angles_deg: Vec<f64>,
-    commands: Vec<String>,
+#[derive(Serialize, Deserialize)]
+pub struct Setup {
+    /// Inner corners of both boards, COLSxROWS.
+    pub board: String,
+    /// Square sizes of the camera's and the turntable's boards, mm.
+    pub camera_square_mm: f64,
+    pub turntable_square_mm: f64,
+    /// Turntable angle of each turntable image, in name order, degrees.
+    pub turntable_angles_deg: Vec<f64>,
+    /// The `glasscan calibrate` commands that calibrate from the images.
+    pub commands: Vec<String>,
 }
 
 /// Renders the calibration sets of `scan` (its camera, turntable and background) into

@@ -4,6 +4,7 @@
 //! outcome, the silhouette mask, and the footprint of the whole pixel on the monitor).
 
 pub mod calibration;
+pub mod light;
 pub mod render;
 
 use std::path::Path;
@@ -31,7 +32,9 @@ use crate::util::fixed::{FixedPoint, MAX_SIDE_PX, NONE};
 use crate::util::folder::{StagedFolder, FORCE_HINT};
 use crate::util::image::{write_pixels, write_png};
 use crate::util::median;
-use render::{shade, shade_phase, trace_view, Outcome, Sample, ViewSetup};
+pub use light::Transport;
+use light::{physical_light, Light};
+use render::{camera_rays, shade, shade_phase, trace_view, Outcome, Sample, ViewSetup};
 
 /// Settings of a simulated scan (defaults: DRT's rig at 1280×960).
 #[derive(Clone, Debug)]
@@ -61,8 +64,10 @@ pub struct SimulateOptions {
     /// Normals the simulated object refracts with: interpolated by default (a real glass object
     /// is smooth; flat facets would add facet-edge artefacts a real capture does not have).
     pub normals: NormalModel,
-    /// Fresnel transmission losses.
+    /// Fresnel transmission losses (simple transport; the physical one always has them).
     pub fresnel: bool,
+    /// The light transport of the captures.
+    pub transport: Transport,
     /// Phase-shift images after the Gray code.
     pub phase_shift: Option<PhaseShift>,
     /// The camera's lens distortion, OpenCV's k1 k2 p1 p2 k3.
@@ -94,6 +99,7 @@ impl Default for SimulateOptions {
             fill: 0.6,
             normals: NormalModel::Vertex,
             fresnel: true,
+            transport: Transport::Simple,
             phase_shift: None,
             distortion: [0.0; 5],
             calibration_images: false,
@@ -121,6 +127,12 @@ pub struct SimulateReport {
     pub direct_footprint_px: f64,
     /// Scale s of the fixed-point monitor coordinates in the truth PNGs (see `write_truth`).
     pub fixed_point_scale: f64,
+    /// Share of the light reaching the monitor in object pixels that came through at least one
+    /// reflection (ghosts; 0 with the simple transport).
+    pub ghost_share: f64,
+    /// Light the physical tracer dropped (depth limit, faint branches), as a share of the light
+    /// reaching the monitor in object pixels.
+    pub dropped_share: f64,
     pub seconds: f64,
 }
 
@@ -288,7 +300,9 @@ fn render_views(
             .with_context(|| format!("cannot create {}", decoded_dir.display()))?;
     }
     for (k, pose) in poses.iter().enumerate() {
-        let samples = trace_view(&setup(*pose, Some(&surface)), o.spp)?;
+        let view = setup(*pose, Some(&surface));
+        let rays = camera_rays(&view, o.spp);
+        let samples = trace_view(&view, &rays)?;
         tally.add(&samples, o.spp);
         write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
         if o.decoded_only {
@@ -303,7 +317,12 @@ fn render_views(
             )?);
         } else {
             let seed = o.seed.wrapping_add(k as u64);
-            write_captures(&scan.view_dir(k), &samples, o, &code, seed)?;
+            let light = match o.transport {
+                Transport::Simple => Light::from_samples(&samples, o.spp),
+                Transport::Physical => physical_light(&view, &surface, &rays, &samples, o.spp)?,
+            };
+            tally.add_light(&light);
+            write_captures(&scan.view_dir(k), &light, o, &code, seed)?;
         }
         progress(k);
     }
@@ -326,7 +345,7 @@ fn render_background(
     o: &SimulateOptions,
     code: &GrayCode,
 ) -> Result<f64> {
-    let background = trace_view(setup, o.spp)?;
+    let background = trace_view(setup, &camera_rays(setup, o.spp))?;
     let seen = background
         .iter()
         .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
@@ -338,7 +357,8 @@ fn render_background(
         );
     }
     if !o.decoded_only || o.calibration_images {
-        write_captures(&scan.background_dir(), &background, o, code, o.seed ^ 0xb6)?;
+        let light = Light::from_samples(&background, o.spp);
+        write_captures(&scan.background_dir(), &light, o, code, o.seed ^ 0xb6)?;
     }
     if o.calibration_images {
         calibration::write_calibration_images(scan, out, o)?;
@@ -405,6 +425,9 @@ fn check_options(o: &SimulateOptions) -> Result<()> {
             bail!("phase shift needs at least 3 steps and a period of at least 4 pixels");
         }
     }
+    if o.transport == Transport::Physical && o.decoded_only {
+        bail!("the physical transport shows in captures: drop --decoded-only (decode the captures instead)");
+    }
     if o.views == 0 || o.spp == 0 || o.max_refractions == 0 {
         bail!("views, spp and max refractions must be at least 1");
     }
@@ -420,24 +443,21 @@ fn check_options(o: &SimulateOptions) -> Result<()> {
 /// Writes the capture images of one view (or of the background) into `dir`.
 fn write_captures(
     dir: &Path,
-    samples: &[Sample],
+    light: &Light,
     o: &SimulateOptions,
     code: &GrayCode,
     seed: u64,
 ) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let mut names = code.file_names();
-    let gray = names.len();
-    if let Some(p) = &o.phase_shift {
-        names.extend(p.file_names());
-    }
+    let names = crate::patterns::capture_names(code, o.phase_shift.as_ref());
+    let gray = code.file_names().len();
     names
         .par_iter()
         .enumerate()
         .try_for_each(|(i, name)| -> Result<()> {
             let mut img = match (&o.phase_shift, i.checked_sub(gray)) {
-                (Some(p), Some(j)) => shade_phase(samples, o.spp, p, j as u32),
-                _ => shade(samples, o.spp, code, i),
+                (Some(p), Some(j)) => shade_phase(light, o.spp, p, j as u32),
+                _ => shade(light, o.spp, code, i),
             };
             let rng_seed = seed.wrapping_mul(1000).wrapping_add(i as u64);
             write_sensor_image(&dir.join(name), &mut img, (o.width, o.height), o, rng_seed)
@@ -644,6 +664,9 @@ struct Tally {
     too_many: usize,
     grazing: usize,
     footprints: Vec<f64>,
+    ghost_weight: f64,
+    object_weight: f64,
+    dropped_weight: f64,
 }
 
 impl Tally {
@@ -684,7 +707,15 @@ impl Tally {
             median_footprint_px: median(self.footprints),
             direct_footprint_px: f64::NAN,
             fixed_point_scale: 0.0,
+            ghost_share: self.ghost_weight / self.object_weight.max(f64::MIN_POSITIVE),
+            dropped_share: self.dropped_weight / self.object_weight.max(f64::MIN_POSITIVE),
             seconds: 0.0,
         }
+    }
+
+    fn add_light(&mut self, light: &Light) {
+        self.ghost_weight += light.ghost_weight;
+        self.object_weight += light.object_weight;
+        self.dropped_weight += light.dropped_weight;
     }
 }

@@ -4,6 +4,7 @@
 use nalgebra::{Isometry3, Point2, Point3, Vector3};
 use rayon::prelude::*;
 
+use super::light::Light;
 use crate::patterns::{GrayCode, PhaseShift};
 use crate::rig::{Camera, Screen};
 use crate::trace::path::{trace_paths, MeshSurface, PathEnd, PathSettings};
@@ -84,14 +85,14 @@ pub struct ViewSetup<'a> {
     pub fresnel: bool,
 }
 
-/// Traces `spp` samples of every pixel (row-major; samples of a pixel together).
-pub fn trace_view(v: &ViewSetup, spp: u32) -> Result<Vec<Sample>, TraceError> {
+/// The camera rays of `spp` area samples of every pixel, world frame (row-major; samples of a
+/// pixel together; `None` where the lens model has no ray).
+pub fn camera_rays(v: &ViewSetup, spp: u32) -> Vec<Option<Ray>> {
     let (w, h) = (v.camera.width, v.camera.height);
     let to_world = v.pose.inverse();
-    let screen = v.screen.transformed(&to_world);
     let eye = to_world * Point3::origin();
     let offsets = sample_offsets(spp);
-    let rays: Vec<Option<Ray>> = (0..h * w)
+    (0..h * w)
         .into_par_iter()
         .flat_map_iter(|p| {
             let (x, y) = ((p % w) as f64, (p / w) as f64);
@@ -101,7 +102,12 @@ pub fn trace_view(v: &ViewSetup, spp: u32) -> Result<Vec<Sample>, TraceError> {
                     .map(|d| Ray::new(eye, to_world * d))
             })
         })
-        .collect();
+        .collect()
+}
+
+/// Traces `rays` (from [`camera_rays`]) along one refracted path each.
+pub fn trace_view(v: &ViewSetup, rays: &[Option<Ray>]) -> Result<Vec<Sample>, TraceError> {
+    let screen = v.screen.transformed(&v.pose.inverse());
     // Rays that can meet the object go through the tracer; the others fly straight.
     let r2 = v.bound_radius * v.bound_radius;
     let may_hit = |r: &Ray| {
@@ -173,21 +179,19 @@ fn land(
     }
 }
 
-/// Shades one image as 0..255 intensities (before noise): each pixel averages, over its area
-/// samples that reached the monitor, the sample's weight times the monitor's brightness (0..1)
-/// there, given by `brightness(u, v)` at the sample's monitor pixel.
-fn shade_with(
-    samples: &[Sample],
-    spp: u32,
-    brightness: impl Fn(f64, f64) -> f64 + Sync,
-) -> Vec<f32> {
-    samples
-        .par_chunks(spp as usize)
-        .map(|px| {
-            let lit: f64 = px
-                .iter()
-                .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
-                .map(|s| s.weight * brightness(s.monitor.x.round(), s.monitor.y.round()))
+/// Shades one image as 0..255 intensities (before noise): each pixel sums, over the light it
+/// gathers, the weight times the monitor's brightness (0..1) there, given by `brightness(u, v)`
+/// at the monitor pixel, divided by its area samples.
+fn shade_with(light: &Light, spp: u32, brightness: impl Fn(f64, f64) -> f64 + Sync) -> Vec<f32> {
+    light
+        .offsets
+        .par_windows(2)
+        .map(|r| {
+            let lit: f64 = (r[0]..r[1])
+                .map(|k| {
+                    let p = light.points[k];
+                    light.weights[k] * brightness(p.x.round(), p.y.round())
+                })
                 .sum();
             (255.0 * lit / spp as f64) as f32
         })
@@ -195,9 +199,9 @@ fn shade_with(
 }
 
 /// Shades image `i` of the capture sequence (patterns, then white, then black).
-pub fn shade(samples: &[Sample], spp: u32, code: &GrayCode, i: usize) -> Vec<f32> {
+pub fn shade(light: &Light, spp: u32, code: &GrayCode, i: usize) -> Vec<f32> {
     let n = code.pattern_count();
-    shade_with(samples, spp, |u, v| {
+    shade_with(light, spp, |u, v| {
         let on = match i {
             i if i < n => code.is_white(i, u as u32, v as u32),
             i => i == n, // white image; the black image shows nothing
@@ -207,9 +211,9 @@ pub fn shade(samples: &[Sample], spp: u32, code: &GrayCode, i: usize) -> Vec<f32
 }
 
 /// Shades phase-shift image `j` (the first `steps` along u, then along v).
-pub fn shade_phase(samples: &[Sample], spp: u32, phase: &PhaseShift, j: u32) -> Vec<f32> {
+pub fn shade_phase(light: &Light, spp: u32, phase: &PhaseShift, j: u32) -> Vec<f32> {
     let (k, along_u) = (j % phase.steps, j < phase.steps);
-    shade_with(samples, spp, |u, v| {
+    shade_with(light, spp, |u, v| {
         phase.value(if along_u { u } else { v }, k)
     })
 }

@@ -42,7 +42,9 @@ pub trait Surface: Sync {
 }
 
 /// Which normal refraction uses on a mesh.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum NormalModel {
     /// The flat triangle normal (DRT).

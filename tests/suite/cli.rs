@@ -1,39 +1,11 @@
 //! The `glasscan` binary as a user runs it: outputs, exit codes and one-line errors.
 
+use crate::common::{glasscan, refused_in_one_line, stderr, stdout};
 use std::fs;
 use std::path::Path;
-use std::process::{Command, Output};
 
 use glasscan::mesh::io::write_mesh;
 use glasscan::mesh::shapes::{figurine, icosphere};
-
-fn glasscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args)
-        .output()
-        .expect("run glasscan")
-}
-
-fn stdout(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-/// Asserts a failure with exit code 1, a single `error:` line mentioning `needle`, and no panic.
-fn assert_clean_failure(o: &Output, needle: &str) {
-    let err = stderr(o);
-    assert_eq!(o.status.code(), Some(1), "stderr: {err}");
-    assert!(!err.contains("panicked"), "panic: {err}");
-    let lines: Vec<&str> = err.lines().collect();
-    assert_eq!(lines.len(), 1, "one line expected: {err}");
-    assert!(
-        lines[0].starts_with("error: ") && lines[0].contains(needle),
-        "{err}"
-    );
-}
 
 #[test]
 fn info_on_a_genus_1_figurine_reports_a_valid_genus_1_mesh() {
@@ -81,7 +53,7 @@ fn info_names_each_defect() {
         let path = dir.path().join(name);
         write_mesh(&path, mesh).unwrap();
         let o = glasscan(&["info", path.to_str().unwrap()]);
-        assert_clean_failure(&o, needle);
+        refused_in_one_line(&o, needle);
         assert!(stderr(&o).contains(name), "{}", stderr(&o));
         assert!(stdout(&o).contains("INVALID"), "{}", stdout(&o));
     }
@@ -118,7 +90,7 @@ fn bad_files_fail_with_one_line_and_no_panic() {
     ];
     for (args, needle) in cases {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        assert_clean_failure(&glasscan(&args), needle);
+        refused_in_one_line(&glasscan(&args), needle);
     }
     // Out-of-range arguments are rejected when parsed (exit 2), naming the option.
     let good = p("good.ply");
@@ -309,7 +281,7 @@ fn remesh_writes_a_valid_mesh_and_refuses_bad_input() {
         full.extend(args);
         full.extend(["-o".to_string(), s(&d.join("never.ply"))]);
         let full: Vec<&str> = full.iter().map(String::as_str).collect();
-        assert_clean_failure(&glasscan(&full), needle);
+        refused_in_one_line(&glasscan(&full), needle);
     }
     assert!(!d.join("never.ply").exists());
 }
@@ -398,6 +370,6 @@ fn demo_runs_the_main_job_end_to_end() {
     fs::create_dir(&other).unwrap();
     fs::write(other.join("notes.txt"), "mine").unwrap();
     let o = glasscan(&["demo", "--out", other.to_str().unwrap()]);
-    assert_clean_failure(&o, "exists and is not empty");
+    refused_in_one_line(&o, "exists and is not empty");
     assert_eq!(fs::read_to_string(other.join("notes.txt")).unwrap(), "mine");
 }

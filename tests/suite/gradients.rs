@@ -557,7 +557,7 @@ fn silhouette_gradient_matches_finite_differences_and_drt_points_the_same_way() 
 
 #[test]
 fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
-    use glasscan::simulate::render::{trace_view, Outcome, ViewSetup};
+    use glasscan::simulate::render::{camera_rays, trace_view, Outcome, ViewSetup};
     let mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
     let cam = ring_camera(160, 120, 300.0, [0.0; 5]);
     let tt = Turntable {
@@ -594,7 +594,7 @@ fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
                     settings: PathSettings::new(1.5, 4),
                     fresnel: false,
                 };
-                let samples = trace_view(&setup, 1).unwrap();
+                let samples = trace_view(&setup, &camera_rays(&setup, 1)).unwrap();
                 let to_world = pose.inverse();
                 let world_screen = screen.transformed(&to_world);
                 ViewTargets {

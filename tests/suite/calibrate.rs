@@ -1,8 +1,9 @@
 //! `glasscan calibrate`: against OpenCV's own sample calibration, against simulated rigs with
 //! known truth, and on bad input.
 
+use crate::common::{glasscan, refused, run};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::sync::OnceLock;
 
 use glasscan::calibrate::board::{read_images, Board};
@@ -17,25 +18,6 @@ use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::Vector3;
 use opencv::core::{FileNodeTraitConst, FileStorage, FileStorageTraitConst, MatTraitConstManual};
 
-fn glasscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args)
-        .output()
-        .expect("run glasscan")
-}
-
-/// Asserts exit code 1 with one `error:` line containing `needle`, and no panic.
-fn assert_fails_with(o: &Output, needle: &str) {
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "stderr: {err}");
-    assert!(!err.contains("panicked"), "{err}");
-    let line = err.lines().find(|l| l.starts_with("error: "));
-    assert!(
-        line.is_some_and(|l| l.contains(needle)),
-        "expected '{needle}' in: {err}"
-    );
-}
-
 const OPENCV_DATA: &str = "/usr/share/doc/opencv-doc/examples/data";
 
 /// OpenCV's sample calibration images and reference result (Debian package opencv-doc),
@@ -43,16 +25,13 @@ const OPENCV_DATA: &str = "/usr/share/doc/opencv-doc/examples/data";
 fn opencv_samples() -> PathBuf {
     let dir = Path::new(OPENCV_DATA);
     if !dir.join("left_intrinsics.yml").is_file() {
-        let root = Command::new("id")
-            .arg("-u")
-            .output()
-            .map(|o| o.stdout == b"0\n");
-        if root.unwrap_or(false) {
-            let ok = Command::new("apt-get")
+        let root = run(Command::new("id").arg("-u")).stdout == b"0\n";
+        if root {
+            let ok = run(Command::new("apt-get")
                 .args(["install", "-y", "opencv-doc"])
-                .env("DEBIAN_FRONTEND", "noninteractive")
-                .status()
-                .is_ok_and(|s| s.success());
+                .env("DEBIAN_FRONTEND", "noninteractive"))
+            .status
+            .success();
             assert!(ok, "apt-get install -y opencv-doc failed");
         }
     }
@@ -343,10 +322,10 @@ fn bad_calibration_input_gives_clear_errors() {
             t.join("c.yml").to_str().unwrap(),
         ])
     };
-    assert_fails_with(&camera_run(&t.join("nothing*.png")), "no file matches");
+    refused(&camera_run(&t.join("nothing*.png")), "no file matches");
     // Monitor images hold no board.
     let bg = truth.background_dir();
-    assert_fails_with(&camera_run(&bg.join("w*.png")), "found in 0 of 1 images");
+    refused(&camera_run(&bg.join("w*.png")), "found in 0 of 1 images");
     // Two boards and a blank image: too few usable.
     let few = t.join("few");
     std::fs::create_dir(&few).unwrap();
@@ -358,7 +337,7 @@ fn bad_calibration_input_gives_clear_errors() {
         .unwrap();
     }
     std::fs::copy(bg.join("black.png"), few.join("2.png")).unwrap();
-    assert_fails_with(&camera_run(&few.join("*.png")), "found in 2 of 3 images");
+    refused(&camera_run(&few.join("*.png")), "found in 2 of 3 images");
     // A smaller image among the others.
     let small = opencv::core::Mat::new_rows_cols_with_default(
         10,
@@ -373,7 +352,7 @@ fn bad_calibration_input_gives_clear_errors() {
         &opencv::core::Vector::new(),
     )
     .unwrap();
-    assert_fails_with(&camera_run(&few.join("*.png")), "10×10 pixels");
+    refused(&camera_run(&few.join("*.png")), "10×10 pixels");
     // Angles that do not match the images.
     let o = glasscan(&[
         "calibrate",
@@ -394,7 +373,7 @@ fn bad_calibration_input_gives_clear_errors() {
         "-o",
         t.join("tt.yml").to_str().unwrap(),
     ]);
-    assert_fails_with(&o, "2 angles for 9 images");
+    refused(&o, "2 angles for 9 images");
     // A background capture in which the monitor is dark: too little decodes.
     let dark = t.join("dark");
     for f in ["scan.toml", "camera.yml", "screen.yml", "turntable.yml"] {
@@ -414,9 +393,9 @@ fn bad_calibration_input_gives_clear_errors() {
         "-o",
         t.join("s.yml").to_str().unwrap(),
     ]);
-    assert_fails_with(&o, "the monitor decodes in 0.00 %");
+    refused(&o, "the monitor decodes in 0.00 %");
     // No background capture at all.
     std::fs::remove_dir_all(&dark_bg).unwrap();
     let o = glasscan(&["calibrate", "screen", dark.to_str().unwrap()]);
-    assert_fails_with(&o, "no background capture");
+    refused(&o, "no background capture");
 }

@@ -2,9 +2,10 @@
 //! 0/1 and 0/255 masks) import to the same reconstruction inputs as the scan they were exported
 //! from; bad files are clear errors; hull and reconstruct run on an import.
 
+use crate::common::{glasscan, hdf5_open, refused};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-use std::sync::{Mutex, OnceLock};
+use std::process::Output;
+use std::sync::OnceLock;
 
 use glasscan::loss::refraction::ViewTargets;
 use glasscan::loss::targets::{scan_targets, TargetWeights};
@@ -14,35 +15,6 @@ use glasscan::scan::Scan;
 use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::{Point3, Vector3};
 use ndarray::{Array2, Array3, Array4};
-
-/// Held while this process has an HDF5 file open and while it starts a child. HDF5 opens files
-/// without close-on-exec and locks them (flock): a child started by a parallel test while a file
-/// is open inherits the descriptor, and with it the lock, until that child exits.
-static HDF5_OPEN: Mutex<()> = Mutex::new(());
-
-fn glasscan(args: &[&str]) -> Output {
-    let child = {
-        let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
-        Command::new(env!("CARGO_BIN_EXE_glasscan"))
-            .args(args)
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .expect("run glasscan")
-    };
-    child.wait_with_output().expect("run glasscan")
-}
-
-fn assert_fails_with(o: &Output, needle: &str) {
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "stderr: {err}");
-    assert!(!err.contains("panicked"), "{err}");
-    assert!(
-        err.lines()
-            .any(|l| l.starts_with("error: ") && l.contains(needle)),
-        "expected '{needle}' in: {err}"
-    );
-}
 
 const VIEWS: usize = 72;
 
@@ -96,7 +68,7 @@ const POINT_GREY: Layout = Layout {
 
 /// Writes `scan` in DRT's layout; returns the number of rows zeroed.
 fn export_drt(scan: &Scan, path: &Path, l: Layout) -> usize {
-    let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
+    let _open = hdf5_open();
     let (w, h) = (scan.camera.width as usize, scan.camera.height as usize);
     let decoded = DecodedScan::open(&scan.dir, (w as u32, h as u32)).unwrap();
     let poses = scan.view_poses();
@@ -387,16 +359,16 @@ fn bad_files_name_the_key_and_shape() {
             // Without rays the file reads as a Redmi one; forcing Point Grey names the key.
             assert!(o.status.success());
             let o = import(&file, &tmp.path().join("s2"), &["--camera", "pointgrey"]);
-            assert_fails_with(&o, "no dataset 'ray_dir'");
+            refused(&o, "no dataset 'ray_dir'");
         } else {
-            assert_fails_with(&o, needle);
+            refused(&o, needle);
         }
     }
     // A wrong shape.
     let file = tmp.path().join("shape.h5");
     export_drt(src, &file, POINT_GREY);
     {
-        let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        let _open = hdf5_open();
         let f = hdf5::File::open_rw(&file).unwrap();
         f.unlink("screen_position").unwrap();
         let a = Array3::<f32>::zeros((VIEWS, 10, 3));
@@ -406,11 +378,11 @@ fn bad_files_name_the_key_and_shape() {
             .unwrap();
         f.close().unwrap();
     }
-    assert_fails_with(
+    refused(
         &import(&file, &out, &[]),
         "dataset 'screen_position' has shape [72, 10, 3]",
     );
-    assert_fails_with(
+    refused(
         &import(&tmp.path().join("none.h5"), &out, &[]),
         "no such file",
     );
@@ -453,7 +425,7 @@ fn a_failed_import_leaves_the_previous_scan_as_it_was() {
     let bad = tmp.path().join("bad.h5");
     export_drt(src, &bad, POINT_GREY);
     {
-        let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        let _open = hdf5_open();
         let f = hdf5::File::open_rw(&bad).unwrap();
         f.unlink("screen_position").unwrap();
         let (w, h) = (src.camera.width as usize, src.camera.height as usize);
@@ -464,8 +436,8 @@ fn a_failed_import_leaves_the_previous_scan_as_it_was() {
             .unwrap();
         f.close().unwrap();
     }
-    assert_fails_with(&import(&bad, &out, &[]), "not empty");
-    assert_fails_with(
+    refused(&import(&bad, &out, &[]), "not empty");
+    refused(
         &import(&bad, &out, &["--force"]),
         "no object pixel has a monitor point",
     );
@@ -476,7 +448,7 @@ fn a_failed_import_leaves_the_previous_scan_as_it_was() {
     let siblings = std::fs::read_dir(tmp.path()).unwrap().count();
     assert_eq!(siblings, 3, "a temporary folder was left behind");
     // The input is never the output.
-    assert_fails_with(
+    refused(
         &import(&good, tmp.path(), &["--force"]),
         "would overwrite the input",
     );
@@ -488,7 +460,7 @@ fn a_declared_size_beyond_the_memory_limit_is_refused() {
     let tmp = tempfile::tempdir().unwrap();
     let file = tmp.path().join("huge.h5");
     {
-        let _open = HDF5_OPEN.lock().unwrap_or_else(|e| e.into_inner());
+        let _open = hdf5_open();
         let f = hdf5::File::create(&file).unwrap();
         let eye: Array3<f64> =
             Array3::from_shape_fn((VIEWS, 4, 4), |(_, i, j)| (i == j) as u8 as f64);
@@ -511,5 +483,5 @@ fn a_declared_size_beyond_the_memory_limit_is_refused() {
     }
     assert!(std::fs::metadata(&file).unwrap().len() < 1 << 20);
     let o = import(&file, &tmp.path().join("out"), &[]);
-    assert_fails_with(&o, "more than the limit");
+    refused(&o, "more than the limit");
 }

@@ -3,7 +3,7 @@
 //! error about the data it lacks (here, in an empty folder). Commands that need no data
 //! (`patterns`, `--version`) must succeed.
 
-use std::process::Command;
+use crate::common::{glasscan_cmd, run};
 
 /// The `glasscan …` commands in README.md's code spans and blocks.
 fn readme_commands() -> Vec<String> {
@@ -64,11 +64,7 @@ fn every_readme_command_parses_and_fails_only_for_want_of_data() {
         if w.iter().any(|x| x == "COMMAND") {
             continue;
         }
-        let o = Command::new(env!("CARGO_BIN_EXE_glasscan"))
-            .args(&w[1..])
-            .current_dir(dir.path())
-            .output()
-            .unwrap();
+        let o = run(glasscan_cmd().args(&w[1..]).current_dir(dir.path()));
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(!err.contains("panicked"), "{cmd}: {err}");
         let needs_no_data = w[1] == "patterns" || w[1] == "--version";

@@ -1,8 +1,7 @@
 //! Visual hull: marching cubes' guarantees, convergence on a sphere, containment of the true
 //! shape on simulated scans, and bad input.
 
-use std::path::Path;
-use std::process::Command;
+use crate::common::{decoded_scan, glasscan};
 
 use glasscan::hull::{visual_hull, HullOptions};
 use glasscan::mesh::marching_cubes::{marching_cubes, FieldBlock, Grid};
@@ -226,25 +225,6 @@ fn tolerance_keeps_what_one_bad_mask_cuts_away() {
     );
 }
 
-fn glasscan(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args)
-        .output()
-        .expect("run glasscan")
-}
-
-fn small_scan(dir: &Path, mesh: &TriMesh, views: usize) {
-    let opts = SimulateOptions {
-        views,
-        width: 320,
-        height: 240,
-        spp: 1,
-        decoded_only: true,
-        ..Default::default()
-    };
-    simulate(mesh, dir, &opts, |_| ()).unwrap();
-}
-
 #[test]
 fn hull_of_a_simulated_torus_contains_it_and_keeps_its_hole() {
     let dir = tempfile::tempdir().unwrap();
@@ -253,7 +233,7 @@ fn hull_of_a_simulated_torus_contains_it_and_keeps_its_hole() {
     for p in &mut t.positions {
         *p = Point3::new(p.x, p.z, -p.y);
     }
-    small_scan(dir.path(), &t, 36);
+    decoded_scan(dir.path(), &t, 36, (320, 240));
     let out = dir.path().join("hull.ply");
     let o = glasscan(&[
         "hull",
@@ -279,7 +259,12 @@ fn hull_of_a_simulated_torus_contains_it_and_keeps_its_hole() {
 #[test]
 fn bad_masks_are_clear_errors_or_named_warnings() {
     let dir = tempfile::tempdir().unwrap();
-    small_scan(dir.path(), &ellipsoid(Vector3::new(30.0, 25.0, 20.0), 4), 8);
+    decoded_scan(
+        dir.path(),
+        &ellipsoid(Vector3::new(30.0, 25.0, 20.0), 4),
+        8,
+        (320, 240),
+    );
     let scan_dir = dir.path().to_str().unwrap();
     let out = dir.path().join("hull.ply");
     let run = || {

@@ -1,8 +1,8 @@
 //! `simulate` end to end: OpenCV's own Gray-code decoder on the simulated captures recovers the
 //! ground truth; the pattern order is OpenCV's; bad input is refused.
 
+use crate::common::glasscan;
 use std::path::Path;
-use std::process::Command;
 
 use glasscan::mesh::io::write_mesh;
 use glasscan::mesh::shapes::{ellipsoid, icosphere};
@@ -138,13 +138,6 @@ fn decoded_only_writes_truth_and_calibration_but_no_images() {
     );
     assert!(r.median_footprint_px > r.direct_footprint_px, "{r:?}");
     glasscan::scan::Scan::open(dir.path()).unwrap();
-}
-
-fn glasscan(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args)
-        .output()
-        .unwrap()
 }
 
 #[test]

@@ -15,6 +15,7 @@ const LEVELS: &[(&str, u32)] = &[
     ("remesh", 3),
     ("eval", 3),
     ("decode", 3),
+    ("capture", 3),
     ("calibrate", 4),
     ("simulate", 5),
     ("hull", 5),

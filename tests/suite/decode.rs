@@ -1,5 +1,6 @@
 //! The Gray-code decoder against OpenCV's `getProjPixel` and against simulated ground truth.
 
+use crate::common::glasscan;
 use glasscan::decode::graycode::{decode_view, BitTest};
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::patterns::GrayCode;
@@ -121,13 +122,6 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
         inside as f64 >= 0.9 * checked as f64,
         "footprint centroid inside the cell for {inside} of {checked}"
     );
-}
-
-fn glasscan(args: &[&str]) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args)
-        .output()
-        .unwrap()
 }
 
 #[test]

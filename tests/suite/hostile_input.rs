@@ -3,60 +3,18 @@
 //! documented exit code (1 for errors, 2 for arguments clap rejects).
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use glasscan::mesh::io::{read_mesh, write_mesh};
 use glasscan::mesh::shapes::{figurine, icosphere};
 use glasscan::mesh::TriMesh;
-use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::Point3;
 
-fn glasscan(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_glasscan"))
-        .args(args)
-        .output()
-        .expect("run glasscan")
-}
-
-/// Asserts a refusal with exit `code` whose stderr names `needle`, without a panic, a backtrace
-/// or an OpenCV message.
-fn refused(o: &Output, code: i32, needle: &str) {
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(code), "stderr: {err}");
-    for bad in ["panicked", "RUST_BACKTRACE", "Assertion failed", "OpenCV("] {
-        assert!(!err.contains(bad), "{err}");
-    }
-    assert!(err.contains(needle), "expected '{needle}' in: {err}");
-}
-
-fn ok(o: &Output) -> String {
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
+use crate::common::{decoded_scan, glasscan, ok, refused_with, s};
 
 fn write(dir: &Path, name: &str, mesh: &TriMesh) -> PathBuf {
     let p = dir.join(name);
     write_mesh(&p, mesh).unwrap();
     p
-}
-
-/// A 4-view decoded scan of a sphere at 160×120.
-fn small_scan(dir: &Path) -> PathBuf {
-    let scan = dir.join("scan");
-    let o = SimulateOptions {
-        views: 4,
-        width: 160,
-        height: 120,
-        spp: 1,
-        decoded_only: true,
-        ..Default::default()
-    };
-    simulate(&icosphere(25.0, 3), &scan, &o, |_| ()).unwrap();
-    scan
 }
 
 /// Remeshing at edges too long for the shape is refused with the largest usable edge; a
@@ -67,7 +25,7 @@ fn a_remesh_that_loses_the_shape_is_refused() {
     let input = write(dir.path(), "fig.ply", &figurine(2.0));
     let out = dir.path().join("out.ply");
     let o = glasscan(&["remesh", s(&input), "-o", s(&out), "--edge-mm", "30"]);
-    refused(&o, 1, "the largest usable edge is about");
+    refused_with(&o, 1, "the largest usable edge is about");
     assert!(!out.exists(), "a refused remesh wrote its output");
     // A flat, closed surface: two triangles back to back.
     let flat = TriMesh::new(
@@ -123,7 +81,7 @@ fn adaptive_sizing_grows_with_the_allowed_error() {
         ),
     ] {
         let args = [&["remesh", s(&input), "-o", s(&x)][..], extra].concat();
-        refused(&glasscan(&args), 1, needle);
+        refused_with(&glasscan(&args), 1, needle);
     }
 }
 
@@ -143,7 +101,7 @@ fn simulate_replaces_a_scan_whole_or_not_at_all() {
         "160x120",
     ];
     let o = glasscan(&[&base[..], &["--views", "2", "--decoded-only"]].concat());
-    refused(&o, 1, "exists and is not empty");
+    refused_with(&o, 1, "exists and is not empty");
     assert!(scan.join("decoded/view_003_mask.png").is_file());
     ok(&glasscan(
         &[&base[..], &["--views", "2", "--decoded-only", "--force"]].concat(),
@@ -165,7 +123,7 @@ fn simulate_replaces_a_scan_whole_or_not_at_all() {
         "--views",
         "2",
     ]);
-    refused(&o, 1, "would overwrite the input");
+    refused_with(&o, 1, "would overwrite the input");
     assert!(inside.is_file());
 }
 
@@ -184,7 +142,7 @@ fn sizes_beyond_the_budget_are_refused_before_allocating() {
         "--max-memory-gb",
         "1",
     ]);
-    refused(&o, 1, "more than the limit of 1.0 GiB");
+    refused_with(&o, 1, "more than the limit of 1.0 GiB");
     let scan = small_scan(dir.path());
     let o = glasscan(&[
         "hull",
@@ -194,7 +152,7 @@ fn sizes_beyond_the_budget_are_refused_before_allocating() {
         "--voxel-mm",
         "0.001",
     ]);
-    refused(&o, 1, "--voxel-mm 0.001 is too fine");
+    refused_with(&o, 1, "--voxel-mm 0.001 is too fine");
     for (args, needle) in [
         (vec!["--views", "100000000"], "--views"),
         (vec!["--spp", "1000000"], "--spp"),
@@ -204,7 +162,7 @@ fn sizes_beyond_the_budget_are_refused_before_allocating() {
     ] {
         let mut a = vec!["simulate", "--mesh", s(&ball), "--out", "never"];
         a.extend(args);
-        refused(&glasscan(&a), 2, needle);
+        refused_with(&glasscan(&a), 2, needle);
         assert!(!Path::new("never").exists());
     }
     // A PLY header promising more vertices than memory holds.
@@ -216,7 +174,12 @@ fn sizes_beyond_the_budget_are_refused_before_allocating() {
          end_header\n",
     )
     .unwrap();
-    refused(&glasscan(&["info", s(&ply)]), 1, "more than the limit");
+    refused_with(&glasscan(&["info", s(&ply)]), 1, "more than the limit");
+}
+
+/// A 4-view 160×120 decoded scan of a 25 mm sphere in `dir/scan`.
+fn small_scan(dir: &Path) -> PathBuf {
+    decoded_scan(&dir.join("scan"), &icosphere(25.0, 3), 4, (160, 120))
 }
 
 /// A monitor behind the camera, or showing its back, is refused when the scan is opened.
@@ -243,7 +206,7 @@ fn an_implausible_rig_is_refused() {
     );
     std::fs::write(scan.join("screen.yml"), moved).unwrap();
     let o = glasscan(&["hull", s(&scan), "-o", s(&dir.path().join("h.ply"))]);
-    refused(&o, 1, "the monitor lies behind the camera");
+    refused_with(&o, 1, "the monitor lies behind the camera");
 }
 
 /// Decoder thresholds out of range are rejected when parsed; `auto` is accepted in any case.
@@ -257,10 +220,10 @@ fn decoder_options_are_range_checked() {
         ("--max-hole-px", "-3"),
     ] {
         let arg = format!("{flag}={value}");
-        refused(&glasscan(&["decode", "nowhere", &arg]), 2, flag);
+        refused_with(&glasscan(&["decode", "nowhere", &arg]), 2, flag);
     }
     let o = glasscan(&["decode", "nowhere", "--white-drop", "AUTO"]);
-    refused(&o, 1, "nowhere");
+    refused_with(&o, 1, "nowhere");
 }
 
 /// Config keys out of range are refused before any work, naming the key.
@@ -296,7 +259,7 @@ fn config_values_are_range_checked() {
     ] {
         std::fs::write(&config, text).unwrap();
         let o = glasscan(&["reconstruct", s(&scan), "-o", s(&out), "--config", s(&config)]);
-        refused(&o, 1, needle);
+        refused_with(&o, 1, needle);
         assert!(!out.exists(), "{text}: the run started");
     }
     let o = glasscan(&[
@@ -307,12 +270,12 @@ fn config_values_are_range_checked() {
         "--hull-voxel-mm",
         "0",
     ]);
-    refused(&o, 2, "--hull-voxel-mm");
+    refused_with(&o, 2, "--hull-voxel-mm");
     // An output that is a file is named before any work.
     let file = dir.path().join("file");
     std::fs::write(&file, "x").unwrap();
     let o = glasscan(&["reconstruct", s(&scan), "-o", s(&file)]);
-    refused(&o, 1, &format!("{} is a file", file.display()));
+    refused_with(&o, 1, &format!("{} is a file", file.display()));
 }
 
 /// `eval` refuses meshes without area, ignores stray vertices, and never writes over an input
@@ -336,24 +299,24 @@ fn eval_refuses_empty_meshes_and_protects_its_inputs() {
     let empty = TriMesh::new(vec![Point3::origin(); 3], vec![[0, 1, 2]]);
     let e = dir.path().join("e.ply");
     write_mesh(&e, &empty).unwrap();
-    refused(
+    refused_with(
         &glasscan(&["eval", s(&e), "--reference", s(&a)]),
         1,
         "has no area",
     );
     let before = std::fs::read(&a).unwrap();
-    refused(
+    refused_with(
         &glasscan(&["eval", s(&b), "--reference", s(&a), "--json", s(&a)]),
         1,
         "--json",
     );
-    refused(
+    refused_with(
         &glasscan(&["eval", s(&b), "--reference", s(&a), "--error-map", s(&a)]),
         1,
         "--error-map",
     );
     assert_eq!(before, std::fs::read(&a).unwrap());
-    refused(
+    refused_with(
         &glasscan(&[
             "eval",
             s(&b),
@@ -367,7 +330,7 @@ fn eval_refuses_empty_meshes_and_protects_its_inputs() {
     );
     let scan = small_scan(dir.path());
     let x = dir.path().join("x.ply");
-    refused(
+    refused_with(
         &glasscan(&["hull", s(&scan), "-o", s(&x), "--report", s(&x)]),
         1,
         "--report",
@@ -412,7 +375,7 @@ fn broken_calibration_files_are_explained() {
     ] {
         std::fs::write(scan.join("camera.yml"), &text).unwrap();
         let o = glasscan(&["hull", s(&scan), "-o", s(&dir.path().join("h.ply"))]);
-        refused(&o, 1, needle);
+        refused_with(&o, 1, needle);
         assert!(
             o.status.code() == Some(1) && String::from_utf8_lossy(&o.stderr).contains("camera.yml")
         );
@@ -425,8 +388,8 @@ fn obj_errors_quote_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let obj = dir.path().join("bad.obj");
     std::fs::write(&obj, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 7\n").unwrap();
-    refused(&glasscan(&["info", s(&obj)]), 1, "line 4");
-    refused(&glasscan(&["info", s(&obj)]), 1, "vertex index 7");
+    refused_with(&glasscan(&["info", s(&obj)]), 1, "line 4");
+    refused_with(&glasscan(&["info", s(&obj)]), 1, "vertex index 7");
     std::fs::write(&obj, "v 0 0 0\nf 1 -5 1\n").unwrap();
-    refused(&glasscan(&["info", s(&obj)]), 1, "vertex index -5");
+    refused_with(&glasscan(&["info", s(&obj)]), 1, "vertex index -5");
 }
