@@ -25,6 +25,7 @@ use crate::mesh::TriMesh;
 use crate::reconstruct::config::{Preset, Settings};
 use crate::reconstruct::pipeline::{reconstruct_scan, Job};
 use crate::reconstruct::plot::time_accuracy_plot;
+use crate::reconstruct::validation::best_stage;
 use crate::reconstruct::{self, stage_path, Existing, Progress, Start};
 use crate::scan::Scan;
 use crate::simulate::{simulate, SimulateOptions, Transport};
@@ -107,6 +108,10 @@ pub struct BenchRun {
     pub seconds_hull: f64,
     /// Stages run of the preset's; fewer for a `drt` run cut at the budget.
     pub stages_done: usize,
+    /// The stage evaluated: the one within the budget that fits the held-out views best (the
+    /// last when none are held out), counted from 1.
+    #[serde(default)]
+    pub result_stage: usize,
     pub stages: usize,
     pub accuracy_mm: f64,
     pub completeness_mm: f64,
@@ -321,8 +326,11 @@ fn run_one(
     };
     // A run cut at the budget ends after a stage's commit; the stages it finished are read back.
     let ck = reconstruct_scan(job, progress, &stop)?.finished.checkpoint;
-    let (curve, last) = stage_curve(&hull, truth, seconds_hull, &ck.stages, budget, dir)?;
-    let (s, seconds, mesh) = last.context("the run finished no stage")?;
+    let (curve, within, seconds) =
+        stage_curve(&hull, truth, seconds_hull, &ck.stages, budget, dir)?;
+    // The result is the stage within the budget that fits the held-out views best.
+    let s = best_stage(&ck.stages, within).context("the run finished no stage")?;
+    let mesh = read_mesh(&stage_path(dir, s))?;
     let e: EvalReport = evaluate(&mesh, truth, &EvalOptions::default())?;
     let f = |t: f64| {
         e.fscores
@@ -337,7 +345,8 @@ fn run_one(
         views: case.views,
         seconds,
         seconds_hull,
-        stages_done: s + 1,
+        stages_done: within,
+        result_stage: s + 1,
         stages: settings.total_stages(),
         accuracy_mm: e.accuracy_mm,
         completeness_mm: e.completeness_mm,
@@ -361,11 +370,11 @@ fn stop_after(seconds: Option<f64>) -> Arc<AtomicBool> {
     stop
 }
 
-/// The last stage within the budget and its mesh, with the stage at which the time passed it.
-type LastStage = Option<(usize, f64, TriMesh)>;
+/// (seconds, accuracy mm) after the hull and each stage of a run.
+type Curve = Vec<(f64, f64)>;
 
-/// (seconds, accuracy mm) after the hull and each stage up to the budget, and the last of those
-/// stages.
+/// The [`Curve`] up to the budget (at least one stage), the number of those stages and the
+/// seconds they took with the hull.
 fn stage_curve(
     hull: &TriMesh,
     truth: &TriMesh,
@@ -373,24 +382,23 @@ fn stage_curve(
     stages: &[reconstruct::StageReport],
     budget: Option<f64>,
     dir: &Path,
-) -> Result<(Vec<(f64, f64)>, LastStage)> {
+) -> Result<(Curve, usize, f64)> {
     let quick = EvalOptions {
         samples: 200_000,
         ..EvalOptions::default()
     };
     let mut curve = vec![(seconds_hull, evaluate(hull, truth, &quick)?.accuracy_mm)];
-    let mut elapsed = seconds_hull;
-    let mut last = None;
+    let (mut elapsed, mut seconds, mut within) = (seconds_hull, seconds_hull, 0);
     for (s, st) in stages.iter().enumerate() {
         elapsed += st.seconds;
-        if budget.is_some_and(|b| elapsed > b) && last.is_some() {
+        if budget.is_some_and(|b| elapsed > b) && within > 0 {
             break;
         }
         let mesh = read_mesh(&stage_path(dir, s))?;
         curve.push((elapsed, evaluate(&mesh, truth, &quick)?.accuracy_mm));
-        last = Some((s, elapsed, mesh));
+        (seconds, within) = (elapsed, s + 1);
     }
-    Ok((curve, last))
+    Ok((curve, within, seconds))
 }
 
 /// Writes results.json, results.md and time_vs_accuracy.png.
@@ -400,11 +408,11 @@ fn write_results(work: &Path, results: &[BenchRun]) -> Result<()> {
         Ok(())
     })?;
     let mut md = String::from(
-        "| object | scan | preset | views | time (s) | accuracy (mm) | completeness (mm) | F@0.5 mm | F@1 mm | stages |\n|---|---|---|---:|---:|---:|---:|---:|---:|---|\n",
+        "| object | scan | preset | views | time (s) | accuracy (mm) | completeness (mm) | F@0.5 mm | F@1 mm | stages | result |\n|---|---|---|---:|---:|---:|---:|---:|---:|---|---:|\n",
     );
     for r in results {
         md += &format!(
-            "| {} | {} | {} | {} | {:.0} | {:.3} | {:.3} | {:.3} | {:.3} | {}/{} |\n",
+            "| {} | {} | {} | {} | {:.0} | {:.3} | {:.3} | {:.3} | {:.3} | {}/{} | {} |\n",
             r.object,
             r.scan,
             r.preset,
@@ -415,7 +423,8 @@ fn write_results(work: &Path, results: &[BenchRun]) -> Result<()> {
             r.fscore_05,
             r.fscore_1,
             r.stages_done,
-            r.stages
+            r.stages,
+            r.result_stage
         );
     }
     write_atomic(&work.join("results.md"), |w| w.write_all(md.as_bytes()))?;

@@ -221,6 +221,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         normals: a.normals,
         form: a.form,
         robust: crate::loss::Robust::L2,
+        min_cos: 0.0,
     };
     eprintln!(
         "bench gradient: {} ({} faces), {} views of {} ({} left out by decode), targets loaded in {load_s:.1} s",

@@ -8,15 +8,13 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use nalgebra::Vector3;
 
 use super::common::StageBars;
 use crate::decode::{decode_scan, DecodeOptions};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::hull::HullOptions;
 use crate::mesh::io::{read_mesh, write_mesh};
-use crate::mesh::shapes::ellipsoid;
-use crate::mesh::TriMesh;
+use crate::mesh::shapes::pebble;
 use crate::reconstruct::config::{Preset, Settings};
 use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
 use crate::reconstruct::{Existing, Start};
@@ -106,23 +104,6 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         args.out.display()
     );
     staged.commit()
-}
-
-/// The built-in object: an ellipsoid with three smooth lobes around the vertical axis and a
-/// dimple in its front face (which no silhouette shows), mm.
-fn pebble() -> TriMesh {
-    let mut object = ellipsoid(Vector3::new(40.0, 30.0, 25.0), 5);
-    for p in &mut object.positions {
-        // Smooth lobes around the vertical axis, fading towards the poles.
-        let lobe = 1.0 + 0.08 * (3.0 * p.z.atan2(p.x)).sin() * (1.0 - (p.y / 30.0).powi(2));
-        p.x *= lobe;
-        p.z *= lobe;
-        // A dimple in the front face.
-        if p.z > 0.0 {
-            p.z *= 1.0 - 0.3 * (-(p.x * p.x + p.y * p.y) / 225.0).exp();
-        }
-    }
-    object
 }
 
 /// The pipeline's entry point with the fast preset, from the visual hull.

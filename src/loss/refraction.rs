@@ -49,6 +49,11 @@ pub struct RefractionSettings {
     pub normals: NormalModel,
     pub form: ResidualForm,
     pub robust: Robust,
+    /// Rays meeting an interface with cos θi or cos θt below this are dropped (their gradients
+    /// grow as 1/cos: near grazing and near the critical angle one ray would outweigh
+    /// thousands); 0 keeps every ray with a usable derivative.
+    #[serde(default)]
+    pub min_cos: f64,
 }
 
 /// One object pixel of a view: its camera ray (world frame, unit direction), the decoded monitor
@@ -221,6 +226,12 @@ fn refract_at(
         SnellFailure::Grazing => DropReason::Grazing,
         SnellFailure::Critical => DropReason::NearCritical,
     })?;
+    if sn.cos_i < s.min_cos {
+        return Err(DropReason::Grazing);
+    }
+    if sn.cos_t < s.min_cos {
+        return Err(DropReason::NearCritical);
+    }
     Ok(Interface {
         tri,
         verts,

@@ -244,3 +244,20 @@ pub fn figurine(step: f64) -> TriMesh {
         step,
     )
 }
+
+/// The built-in object: an ellipsoid with three smooth lobes around the vertical axis and a
+/// dimple in its front face (which no silhouette shows), mm.
+pub fn pebble() -> TriMesh {
+    let mut object = ellipsoid(Vector3::new(40.0, 30.0, 25.0), 5);
+    for p in &mut object.positions {
+        // Smooth lobes around the vertical axis, fading towards the poles.
+        let lobe = 1.0 + 0.08 * (3.0 * p.z.atan2(p.x)).sin() * (1.0 - (p.y / 30.0).powi(2));
+        p.x *= lobe;
+        p.z *= lobe;
+        // A dimple in the front face.
+        if p.z > 0.0 {
+            p.z *= 1.0 - 0.3 * (-(p.x * p.x + p.y * p.y) / 225.0).exp();
+        }
+    }
+    object
+}

@@ -94,6 +94,12 @@ pub struct Settings {
     /// Weights of the decoded monitor points (absent in reports written before it existed).
     #[serde(default)]
     pub target_weights: TargetWeights,
+    /// Refraction rays meeting an interface with cos θi or cos θt below this are dropped
+    /// (bounded per-ray influence; 0: only those without a usable derivative).
+    pub min_cos: f64,
+    /// Share of the views held out of the optimisation to validate every stage on (0: none);
+    /// the stage that fits them best is the result.
+    pub validation_share: f64,
     /// Warm-up stages run before `stages`: the first `warmup_stages` stages of the `drt` preset
     /// (its optimiser, learning rates, terms, weights and iterations; seed and target weights
     /// from here), all at this schedule's `start_edge`. DRT's clamped SGD carves what the visual
@@ -178,6 +184,8 @@ impl Settings {
             smoothness: Smoothness::LogTwoMinusCos,
             target_weights: TargetWeights::Uniform,
             warmup_stages: 3,
+            validation_share: 0.1,
+            min_cos: 0.0,
         };
         match preset {
             Preset::Fast => base,
@@ -224,6 +232,7 @@ impl Settings {
                 silhouette: SilhouetteForm::Drt,
                 smoothness: Smoothness::NegLogOnePlusCos,
                 warmup_stages: 0,
+                validation_share: 0.0,
                 ..base
             },
         }
@@ -289,6 +298,12 @@ impl Settings {
         }
         if self.refraction_views == 0 || self.pixel_stride == 0 {
             return bad("refraction_views/pixel_stride", "must be at least 1");
+        }
+        if !(0.0..0.5).contains(&self.min_cos) {
+            return bad("min_cos", "must lie in [0, 0.5)");
+        }
+        if !(0.0..=0.5).contains(&self.validation_share) {
+            return bad("validation_share", "must lie in [0, 0.5]");
         }
         Ok(())
     }

@@ -9,6 +9,7 @@ pub mod optim;
 pub mod output;
 pub mod pipeline;
 pub mod plot;
+pub mod validation;
 
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -39,6 +40,7 @@ use config::Settings;
 use optim::Stepper;
 use output::commit;
 pub use output::{checkpoint_path, stage_path, Existing};
+use validation::{validate_mesh, Split, ValidationRecord};
 
 type V3 = Vector3<f64>;
 
@@ -74,6 +76,9 @@ pub struct StageReport {
     /// Faces of (numerically) zero area at the end of the stage (the next remesh removes them).
     pub degenerate_faces: usize,
     pub last: IterationRecord,
+    /// The stage mesh's fit to the held-out views (none held out: `None`).
+    #[serde(default)]
+    pub validation: Option<ValidationRecord>,
 }
 
 /// The state saved after every stage.
@@ -139,6 +144,7 @@ pub fn run(
         Existing::Nothing => begin_run(inputs, start, settings, out)?,
     };
     let stages = settings.total_stages();
+    let split = Split::new(inputs, settings.validation_share);
     while ck.stages_done < stages {
         if stop.load(Ordering::SeqCst) {
             return Ok(Finished {
@@ -147,7 +153,7 @@ pub fn run(
                 complete: false,
             });
         }
-        mesh = run_next_stage(inputs, &mut ck, &mesh, progress)?;
+        mesh = run_next_stage(inputs, &split, &mut ck, &mesh, progress)?;
         write_mesh(&stage_path(out, ck.stages_done - 1), &mesh)?;
         commit(out, &ck)?;
     }
@@ -205,9 +211,11 @@ fn continue_run(ck: Checkpoint, settings: &Settings, out: &Path) -> Result<(Chec
     Ok((ck, mesh))
 }
 
-/// Remeshes `mesh` to the next stage's edge length and runs that stage; records it in `ck`.
+/// Remeshes `mesh` to the next stage's edge length, runs that stage on the views `split` fits
+/// and measures the result on those it holds out; records it in `ck`.
 fn run_next_stage(
     inputs: &Inputs,
+    split: &Split,
     ck: &mut Checkpoint,
     mesh: &TriMesh,
     progress: &dyn Progress,
@@ -224,7 +232,7 @@ fn run_next_stage(
     let stages = ck.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
     let report = run_stage(
-        inputs,
+        (inputs, split),
         &mut mesh,
         &phase,
         (s, k),
@@ -232,8 +240,10 @@ fn run_next_stage(
         &mut ck.history,
         progress,
     )?;
+    let validation = validate_mesh(inputs, split, &mesh, &ck.settings)?;
     let report = StageReport {
         seconds: t0.elapsed().as_secs_f64(),
+        validation,
         ..report
     };
     progress.stage_end(&report);
@@ -245,7 +255,7 @@ fn run_next_stage(
 /// The iterations of stage `s` of the run, stage `k` of `settings`' schedule, on `mesh` (moved in
 /// place).
 fn run_stage(
-    inputs: &Inputs,
+    (inputs, split): (&Inputs, &Split),
     mesh: &mut TriMesh,
     settings: &Settings,
     (s, k): (usize, usize),
@@ -261,8 +271,8 @@ fn run_stage(
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ ((s as u64) << 40) ^ it as u64);
         let terms = Terms {
-            refraction: refraction_term(inputs, &surface, mesh, settings, &mut rng)?,
-            silhouette: silhouette_term(inputs, &surface, mesh, &edges, settings, &mut rng)?,
+            refraction: refraction_term(inputs, split, &surface, mesh, settings, &mut rng)?,
+            silhouette: silhouette_term(inputs, split, &surface, mesh, &edges, settings, &mut rng)?,
             smoothness: smoothness_term(mesh, &edges, settings),
         };
         used += terms.refraction.used;
@@ -290,6 +300,7 @@ fn run_stage(
         contour_edges_used: contour,
         degenerate_faces: check_stage_mesh(mesh, s)?,
         last,
+        validation: None,
     })
 }
 
@@ -354,14 +365,32 @@ impl Terms {
     }
 }
 
-/// The refraction term over `refraction_views` random views, every `pixel_stride`-th pixel from
-/// a random offset.
+/// The refraction term over `refraction_views` random views of those `split` fits, every
+/// `pixel_stride`-th pixel from a random offset.
 fn refraction_term(
     inputs: &Inputs,
+    split: &Split,
     surface: &MeshSurface,
     mesh: &TriMesh,
     settings: &Settings,
     rng: &mut ChaCha8Rng,
+) -> Result<TermValue> {
+    let fit = &split.fit_targets;
+    let k = settings.refraction_views.min(fit.len());
+    let views: Vec<(usize, usize)> = sample(rng, fit.len(), k)
+        .into_iter()
+        .map(|v| (fit[v], rng.random_range(0..settings.pixel_stride)))
+        .collect();
+    refraction_over(inputs, surface, mesh, settings, &views)
+}
+
+/// The refraction term over `views` (target index, first pixel), every `pixel_stride`-th pixel.
+fn refraction_over(
+    inputs: &Inputs,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    settings: &Settings,
+    views: &[(usize, usize)],
 ) -> Result<TermValue> {
     let rs = RefractionSettings {
         ior: inputs.ior,
@@ -370,13 +399,12 @@ fn refraction_term(
         normals: settings.normals,
         form: settings.residual,
         robust: settings.robust,
+        min_cos: settings.min_cos,
     };
     let vn = surface.vertex_normals();
     let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
-    let k = settings.refraction_views.min(inputs.targets.len());
-    for v in sample(rng, inputs.targets.len(), k) {
+    for &(v, offset) in views {
         let view = &inputs.targets[v];
-        let offset = rng.random_range(0..settings.pixel_stride);
         let sub = ViewTargets {
             pixels: view
                 .pixels
@@ -392,29 +420,49 @@ fn refraction_term(
     Ok(TermValue::from(acc, mesh))
 }
 
-/// The silhouette term over `silhouette_views` random views (nothing at weight 0).
+/// The silhouette term over `silhouette_views` random views of those `split` fits (nothing at
+/// weight 0).
 fn silhouette_term(
     inputs: &Inputs,
+    split: &Split,
     surface: &MeshSurface,
     mesh: &TriMesh,
     edges: &[InteriorEdge],
     settings: &Settings,
     rng: &mut ChaCha8Rng,
 ) -> Result<TermValue> {
+    let fit = &split.fit_silhouettes;
+    let k = settings.silhouette_views.min(fit.len());
+    let views: Vec<usize> = if settings.weight_silhouette > 0.0 {
+        sample(rng, fit.len(), k)
+            .into_iter()
+            .map(|v| fit[v])
+            .collect()
+    } else {
+        Vec::new()
+    };
+    silhouette_over(inputs, surface, mesh, edges, settings, &views)
+}
+
+/// The silhouette term over the silhouettes `views`.
+fn silhouette_over(
+    inputs: &Inputs,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    edges: &[InteriorEdge],
+    settings: &Settings,
+    views: &[usize],
+) -> Result<TermValue> {
     let mut acc = Accumulator::new(mesh.positions.len(), false);
-    let k = settings.silhouette_views.min(inputs.silhouettes.len());
-    if settings.weight_silhouette > 0.0 {
-        for v in sample(rng, inputs.silhouettes.len(), k) {
-            let sil = &inputs.silhouettes[v];
-            silhouette::add_view(
-                mesh,
-                edges,
-                sil,
-                surface.scene(),
-                settings.silhouette,
-                &mut acc,
-            )?;
-        }
+    for &v in views {
+        silhouette::add_view(
+            mesh,
+            edges,
+            &inputs.silhouettes[v],
+            surface.scene(),
+            settings.silhouette,
+            &mut acc,
+        )?;
     }
     Ok(TermValue::from(acc, mesh))
 }

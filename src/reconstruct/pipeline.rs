@@ -10,10 +10,12 @@ use anyhow::Result;
 
 use super::config::Settings;
 use super::plot::loss_plot;
-use super::{load_inputs, run, Existing, Finished, Progress, Start};
+use super::validation::best_stage;
+use super::{load_inputs, run, stage_path, Existing, Finished, Progress, Start};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::stats::quality;
+use crate::mesh::TriMesh;
 use crate::scan::Scan;
 use crate::util::atomic::write_json;
 
@@ -33,6 +35,10 @@ pub struct Job<'a> {
 /// What [`reconstruct_scan`] hands back.
 pub struct Outcome {
     pub finished: Finished,
+    /// The result: the stage whose mesh fits the held-out views best (the last stage when none
+    /// are held out), and its mesh.
+    pub result_stage: usize,
+    pub result: TriMesh,
     /// Against `SCAN/ground_truth.ply`, when the scan has one and the run is complete.
     pub evaluation: Option<EvalReport>,
     pub warnings: Vec<String>,
@@ -61,66 +67,90 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         ));
     }
     let finished = run(&inputs, start, &settings, out, existing, progress, stop)?;
+    let (result_stage, result) = choose_result(out, &finished, progress)?;
     if !finished.complete {
         return Ok(Outcome {
             finished,
+            result_stage,
+            result,
             evaluation: None,
             warnings,
         });
     }
-    let evaluation = evaluate_against_truth(scan, &finished)?;
+    let evaluation = evaluate_against_truth(scan, &result)?;
     let report = Report {
         views: views.len(),
+        result_stage,
         evaluation: evaluation.as_ref(),
         warnings: &warnings,
         t0,
     };
-    write_results(out, &finished, &report)?;
+    write_results(out, &finished, &result, &report)?;
     Ok(Outcome {
         finished,
+        result_stage,
+        result,
         evaluation,
         warnings,
     })
 }
 
+/// The stage whose mesh fits the held-out views best, and that mesh; says so when it is not
+/// the last stage.
+fn choose_result(
+    out: &Path,
+    finished: &Finished,
+    progress: &dyn Progress,
+) -> Result<(usize, TriMesh)> {
+    let stages = &finished.checkpoint.stages;
+    let last = stages.len().saturating_sub(1);
+    let best = best_stage(stages, stages.len()).unwrap_or(last);
+    if best == last {
+        return Ok((last, finished.mesh.clone()));
+    }
+    let fit = |s: usize| stages[s].validation.map_or(f64::NAN, |v| v.total);
+    progress.note(&format!(
+        "result: stage {} of {}, whose mesh fits the held-out views best ({:.4e} against {:.4e} after the last stage)",
+        best + 1,
+        stages.len(),
+        fit(best),
+        fit(last)
+    ));
+    Ok((best, read_mesh(&stage_path(out, best))?))
+}
+
 /// The result against the scan's `ground_truth.ply`, if it has one.
-fn evaluate_against_truth(scan: &Scan, finished: &Finished) -> Result<Option<EvalReport>> {
+fn evaluate_against_truth(scan: &Scan, result: &TriMesh) -> Result<Option<EvalReport>> {
     let truth = scan.dir.join("ground_truth.ply");
     if !truth.is_file() {
         return Ok(None);
     }
     let reference = read_mesh(&truth)?;
-    Ok(Some(evaluate(
-        &finished.mesh,
-        &reference,
-        &EvalOptions::default(),
-    )?))
+    Ok(Some(evaluate(result, &reference, &EvalOptions::default())?))
 }
 
 /// What `report.json` says beside the checkpoint's figures.
 struct Report<'a> {
     views: usize,
+    result_stage: usize,
     evaluation: Option<&'a EvalReport>,
     warnings: &'a [String],
     t0: Instant,
 }
 
 /// `result.ply`, `loss.png` and `report.json` of a complete run in `out`.
-fn write_results(out: &Path, finished: &Finished, r: &Report) -> Result<()> {
+fn write_results(out: &Path, finished: &Finished, result: &TriMesh, r: &Report) -> Result<()> {
     let ck = &finished.checkpoint;
-    write_mesh(&out.join("result.ply"), &finished.mesh)?;
-    loss_plot(
-        &out.join("loss.png"),
-        &ck.history,
-        ck.settings.warmup_stages,
-    )?;
+    write_mesh(&out.join("result.ply"), result)?;
+    loss_plot(&out.join("loss.png"), ck)?;
     let report = serde_json::json!({
         "settings": ck.settings,
         "views": r.views,
         "seconds_total": r.t0.elapsed().as_secs_f64(),
         "seconds_stages": ck.stages.iter().map(|s| s.seconds).sum::<f64>(),
         "stages": ck.stages,
-        "final_mesh": quality(&finished.mesh),
+        "result_stage": r.result_stage + 1,
+        "result_mesh": quality(result),
         "evaluation_against_ground_truth": r.evaluation.map(|e| e.to_json()),
         "warnings": r.warnings,
     });

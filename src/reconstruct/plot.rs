@@ -11,7 +11,7 @@ use opencv::prelude::*;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use super::IterationRecord;
+use super::{Checkpoint, IterationRecord};
 use crate::util::atomic::write_atomic;
 use crate::util::image::write_png;
 
@@ -81,34 +81,60 @@ const TERMS: [Term; 4] = [
     ("smoothness", |r| r.smoothness, RGBColor(200, 0, 0)),
 ];
 
-/// Draws the weighted term means of `history` (one point per iteration, stage boundaries as
-/// grey lines): the first `warmup_stages` stages (DRT's terms and weights, whose total can be
-/// negative) on a linear scale in a panel of their own, the other stages on a log scale.
-pub fn loss_plot(path: &Path, history: &[IterationRecord], warmup_stages: usize) -> Result<()> {
+/// Draws the weighted term means of a run's history (one point per iteration, stage boundaries
+/// as grey lines): the warm-up stages (DRT's terms and weights, whose total can be negative) on
+/// a linear scale in a panel of their own, the other stages on a log scale with the fit to the
+/// held-out views after each stage (when the run holds views out).
+pub fn loss_plot(path: &Path, ck: &Checkpoint) -> Result<()> {
+    let history = &ck.history;
     let split = history
         .iter()
-        .position(|r| r.stage >= warmup_stages)
+        .position(|r| r.stage >= ck.settings.warmup_stages)
         .unwrap_or(history.len());
     let (warmup, main) = history.split_at(split);
+    let validation = validation_points(ck);
+    let panels = Panels {
+        warmup,
+        main,
+        offset: split,
+        validation: &validation,
+    };
     png_and_svg(
         path,
-        |root| loss_panels(root, warmup, main, split),
-        |root| loss_panels(root, warmup, main, split),
+        |root| loss_panels(root, &panels),
+        |root| loss_panels(root, &panels),
     )
 }
 
-/// The warm-up panel (if any) beside the main one.
-fn loss_panels<DB: DrawingBackend>(
-    root: &DrawingArea<DB, Shift>,
-    warmup: &[IterationRecord],
-    main: &[IterationRecord],
+/// (iteration, held-out fit) at the end of each stage after the warm-up.
+fn validation_points(ck: &Checkpoint) -> Vec<(f64, f64)> {
+    let mut end = 0;
+    let mut points = Vec::new();
+    for st in &ck.stages {
+        end += ck.history.iter().filter(|r| r.stage == st.stage).count();
+        if let (true, Some(v)) = (st.stage >= ck.settings.warmup_stages, st.validation) {
+            points.push(((end.max(1) - 1) as f64, v.total));
+        }
+    }
+    points
+}
+
+/// What the loss plot shows.
+struct Panels<'a> {
+    warmup: &'a [IterationRecord],
+    main: &'a [IterationRecord],
+    /// Iteration index of `main`'s first record.
     offset: usize,
-) -> Result<()> {
-    if warmup.is_empty() {
+    validation: &'a [(f64, f64)],
+}
+
+/// The warm-up panel (if any) beside the main one.
+fn loss_panels<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, p: &Panels) -> Result<()> {
+    if p.warmup.is_empty() {
         return loss_panel(
             root,
-            main,
-            0,
+            (p.main, 0),
+            p.validation,
             "loss terms (weighted means), log scale",
             true,
         );
@@ -116,25 +142,33 @@ fn loss_panels<DB: DrawingBackend>(
     let (left, right) = root.split_horizontally(SIZE.0 * 2 / 5);
     loss_panel(
         &left,
-        warmup,
-        0,
+        (p.warmup, 0),
+        &[],
         "warm-up (DRT's terms and weights), linear",
         false,
     )?;
-    loss_panel(&right, main, offset, "stages, log scale", true)
+    loss_panel(
+        &right,
+        (p.main, p.offset),
+        p.validation,
+        "stages, log scale",
+        true,
+    )
 }
 
-/// One panel of loss curves over iterations `offset..offset + records.len()`.
+/// One panel of loss curves over iterations `offset..offset + records.len()`, with the
+/// held-out fit `validation` as points.
 fn loss_panel<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
-    records: &[IterationRecord],
-    offset: usize,
+    (records, offset): (&[IterationRecord], usize),
+    validation: &[(f64, f64)],
     title: &str,
     log: bool,
 ) -> Result<()> {
     let values = records
         .iter()
         .flat_map(|r| TERMS.iter().map(move |t| (t.1)(r)))
+        .chain(validation.iter().map(|p| p.1))
         .filter(|v| v.is_finite() && (!log || *v > 0.0));
     let (lo, hi) = values.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
         (a.min(v), b.max(v))
@@ -153,21 +187,22 @@ fn loss_panel<DB: DrawingBackend>(
     if log {
         let y = (lo * 0.8..hi * 1.25).log_scale();
         let mut chart = b.build_cartesian_2d(x, y).map_err(plot_err)?;
-        draw_loss_series(&mut chart, records, offset, |v| v > 0.0)
+        draw_loss_series(&mut chart, (records, offset), validation, |v| v > 0.0)
     } else {
         let pad = 0.05 * (hi - lo).abs().max(1e-12);
         let mut chart = b
             .build_cartesian_2d(x, lo - pad..hi + pad)
             .map_err(plot_err)?;
-        draw_loss_series(&mut chart, records, offset, |_| true)
+        draw_loss_series(&mut chart, (records, offset), validation, |_| true)
     }
 }
 
-/// Axes, stage boundaries, the four terms (points `keep` accepts) and the legend.
+/// Axes, stage boundaries, the four terms and the held-out fit (points `keep` accepts) and
+/// the legend.
 fn draw_loss_series<'a, DB, Y>(
     chart: &mut ChartContext<'a, DB, Cartesian2d<plotters::coord::types::RangedCoordf64, Y>>,
-    records: &[IterationRecord],
-    offset: usize,
+    (records, offset): (&[IterationRecord], usize),
+    validation: &[(f64, f64)],
     keep: impl Fn(f64) -> bool,
 ) -> Result<()>
 where
@@ -206,6 +241,18 @@ where
             .map_err(plot_err)?
             .label(name)
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(2)));
+    }
+    if !validation.is_empty() {
+        let colour = RGBColor(230, 130, 0);
+        let points = validation
+            .iter()
+            .copied()
+            .filter(|(_, v)| v.is_finite() && keep(*v));
+        chart
+            .draw_series(points.map(|p| Circle::new(p, 5, colour.filled())))
+            .map_err(plot_err)?
+            .label("held-out views (after each stage)")
+            .legend(move |(x, y)| Circle::new((x + 9, y), 5, colour.filled()));
     }
     draw_legend(chart)
 }

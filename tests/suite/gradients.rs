@@ -80,6 +80,7 @@ fn settings(
         normals,
         form,
         robust,
+        min_cos: 0.0,
     }
 }
 
