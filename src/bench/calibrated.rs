@@ -37,7 +37,6 @@ use crate::rig::{calib_io, Camera, Screen};
 use crate::scan::Scan;
 use crate::simulate::calibration::Setup;
 use crate::simulate::simulate;
-use crate::util::atomic::write_atomic;
 
 /// The lens of the simulated camera, OpenCV's k1 k2 p1 p2 k3: barrel distortion of about 2 % at
 /// the image corners of the default 1280×960 camera.
@@ -97,7 +96,7 @@ pub fn run_calibrated_bench(
 ) -> Result<Vec<CalibratedRun>> {
     std::fs::create_dir_all(&o.work)
         .with_context(|| format!("cannot create {}", o.work.display()))?;
-    let mut results = read_results(&o.work)?;
+    let mut results: Vec<CalibratedRun> = super::read_runs(&o.work.join("calibrated.json"))?;
     for object in &o.objects {
         if results
             .iter()
@@ -358,22 +357,8 @@ fn reconstruct(
     Ok((e, t0.elapsed().as_secs_f64()))
 }
 
-/// The runs `WORK/calibrated.json` holds (none when there is no such file).
-fn read_results(work: &Path) -> Result<Vec<CalibratedRun>> {
-    let path = work.join("calibrated.json");
-    if !path.is_file() {
-        return Ok(Vec::new());
-    }
-    serde_json::from_str(&std::fs::read_to_string(&path)?)
-        .with_context(|| format!("{}: not a calibrated-bench results file", path.display()))
-}
-
 /// Writes calibrated.json and calibrated.md.
 fn write_results(work: &Path, results: &[CalibratedRun]) -> Result<()> {
-    write_atomic(&work.join("calibrated.json"), |w| {
-        serde_json::to_writer_pretty(&mut *w, results)?;
-        Ok(())
-    })?;
     let mut md = String::from(
         "| object | preset | focal % | principal point px | monitor corner mm | monitor normal ° | axis ° | axis mm | true calibration acc./compl. mm | from images acc./compl. mm | difference mm |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
@@ -396,6 +381,10 @@ fn write_results(work: &Path, results: &[CalibratedRun]) -> Result<()> {
             r.calibrated_accuracy_mm - r.true_accuracy_mm
         );
     }
-    write_atomic(&work.join("calibrated.md"), |w| w.write_all(md.as_bytes()))?;
-    Ok(())
+    super::write_runs(
+        &work.join("calibrated.json"),
+        results,
+        &work.join("calibrated.md"),
+        &md,
+    )
 }

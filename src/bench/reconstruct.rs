@@ -29,7 +29,6 @@ use crate::reconstruct::validation::best_stage;
 use crate::reconstruct::{self, stage_path, Existing, Progress, Start};
 use crate::scan::Scan;
 use crate::simulate::{simulate, SimulateOptions, Transport};
-use crate::util::atomic::write_atomic;
 
 /// The scans the benchmark simulates, 72 views each.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -134,7 +133,7 @@ pub fn run_bench(
     check_options(o)?;
     std::fs::create_dir_all(&o.work)
         .with_context(|| format!("cannot create {}", o.work.display()))?;
-    let mut results = read_results(&o.work)?;
+    let mut results: Vec<BenchRun> = super::read_runs(&o.work.join("results.json"))?;
     // drt last, so that the other presets set its budget.
     let mut presets = o.presets.clone();
     presets.sort_by_key(|p| *p == Preset::Drt);
@@ -187,16 +186,6 @@ fn check_options(o: &BenchOptions) -> Result<()> {
         }
     }
     Ok(())
-}
-
-/// The runs `WORK/results.json` holds (none when there is no such file).
-fn read_results(work: &Path) -> Result<Vec<BenchRun>> {
-    let path = work.join("results.json");
-    if !path.is_file() {
-        return Ok(Vec::new());
-    }
-    serde_json::from_str(&std::fs::read_to_string(&path)?)
-        .with_context(|| format!("{}: not a bench results file", path.display()))
 }
 
 /// One reconstruction of the benchmark.
@@ -403,10 +392,6 @@ fn stage_curve(
 
 /// Writes results.json, results.md and time_vs_accuracy.png.
 fn write_results(work: &Path, results: &[BenchRun]) -> Result<()> {
-    write_atomic(&work.join("results.json"), |w| {
-        serde_json::to_writer_pretty(&mut *w, results)?;
-        Ok(())
-    })?;
     let mut md = String::from(
         "| object | scan | preset | views | time (s) | accuracy (mm) | completeness (mm) | F@0.5 mm | F@1 mm | stages | result |\n|---|---|---|---:|---:|---:|---:|---:|---:|---|---:|\n",
     );
@@ -427,7 +412,12 @@ fn write_results(work: &Path, results: &[BenchRun]) -> Result<()> {
             r.result_stage
         );
     }
-    write_atomic(&work.join("results.md"), |w| w.write_all(md.as_bytes()))?;
+    super::write_runs(
+        &work.join("results.json"),
+        results,
+        &work.join("results.md"),
+        &md,
+    )?;
     let series: Vec<(String, Vec<(f64, f64)>)> = results
         .iter()
         .map(|r| {

@@ -143,21 +143,8 @@ fn a_replayed_capture_decodes_and_an_interrupted_one_resumes_at_the_first_missin
 fn capture_refuses_a_camera_it_cannot_open_and_a_missing_display() {
     let dir = tempfile::tempdir().unwrap();
     let recorded = dir.path().join("recorded");
-    let o = SimulateOptions {
-        views: 1,
-        width: 64,
-        height: 48,
-        spp: 1,
-        decoded_only: true,
-        ..Default::default()
-    };
-    simulate(
-        &ellipsoid(Vector3::new(30.0, 24.0, 20.0), 3),
-        &recorded,
-        &o,
-        |_| (),
-    )
-    .unwrap();
+    let sphere = ellipsoid(Vector3::new(30.0, 24.0, 20.0), 3);
+    crate::common::decoded_scan(&recorded, &sphere, 1, (64, 48));
     let nowhere = dir.path().join("nowhere/%04d.png");
     let o = glasscan_in_xvfb(&[
         "capture",

@@ -12,7 +12,6 @@ use glasscan::loss::targets::{scan_targets, TargetWeights};
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::scan::decoded::DecodedScan;
 use glasscan::scan::Scan;
-use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::{Point3, Vector3};
 use ndarray::{Array2, Array3, Array4};
 
@@ -23,21 +22,8 @@ fn source() -> &'static (tempfile::TempDir, Scan) {
     static SRC: OnceLock<(tempfile::TempDir, Scan)> = OnceLock::new();
     SRC.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
-        let o = SimulateOptions {
-            views: VIEWS,
-            width: 64,
-            height: 48,
-            spp: 1,
-            decoded_only: true,
-            ..Default::default()
-        };
-        simulate(
-            &ellipsoid(Vector3::new(30.0, 24.0, 20.0), 3),
-            dir.path(),
-            &o,
-            |_| (),
-        )
-        .unwrap();
+        let sphere = ellipsoid(Vector3::new(30.0, 24.0, 20.0), 3);
+        crate::common::decoded_scan(dir.path(), &sphere, VIEWS, (64, 48));
         let scan = Scan::open(dir.path()).unwrap();
         (dir, scan)
     })
