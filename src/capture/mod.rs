@@ -90,7 +90,11 @@ pub fn capture_scan(
     let total = sets.len() * names.len();
     let mut report = CaptureReport::default();
     let missing = first_missing(&sets, &names);
-    report.kept = missing.map_or(total, |(s, i)| s * names.len() + i);
+    report.kept = sets
+        .iter()
+        .flat_map(|set| names.iter().map(move |n| set.dir.join(n)))
+        .filter(|p| p.is_file())
+        .count();
     let Some((first_set, first_image)) = missing else {
         return Ok(report);
     };

@@ -36,7 +36,7 @@ pub struct Job<'a> {
 pub struct Outcome {
     pub finished: Finished,
     /// The result: the stage whose mesh fits the held-out views best (the last stage when none
-    /// are held out), and its mesh.
+    /// are held out, or when the run was stopped), and its mesh.
     pub result_stage: usize,
     pub result: TriMesh,
     /// Against `SCAN/ground_truth.ply`, when the scan has one and the run is complete.
@@ -67,16 +67,17 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         ));
     }
     let finished = run(&inputs, start, &settings, out, existing, progress, stop)?;
-    let (result_stage, result) = choose_result(out, &finished, progress)?;
     if !finished.complete {
+        // A stopped run has no result yet: its last stage stands in.
         return Ok(Outcome {
+            result_stage: finished.checkpoint.stages_done.saturating_sub(1),
+            result: finished.mesh.clone(),
             finished,
-            result_stage,
-            result,
             evaluation: None,
             warnings,
         });
     }
+    let (result_stage, result) = choose_result(out, &finished, progress)?;
     let evaluation = evaluate_against_truth(scan, &result)?;
     let report = Report {
         views: views.len(),

@@ -50,15 +50,6 @@ impl Split {
         }
     }
 
-    /// Everything fits, nothing validates.
-    pub fn none(inputs: &Inputs) -> Self {
-        Split {
-            fit_targets: (0..inputs.targets.len()).collect(),
-            fit_silhouettes: (0..inputs.silhouettes.len()).collect(),
-            ..Split::default()
-        }
-    }
-
     /// Whether any view is held out.
     pub fn validates(&self) -> bool {
         !self.held_targets.is_empty() || !self.held_silhouettes.is_empty()

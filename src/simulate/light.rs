@@ -204,31 +204,35 @@ fn split(
     let refracted = refract(&b.dir, &n, n_i, n_t);
     let transmittance = refracted.map_or(0.0, |r| r.transmittance);
     let reflected = b.dir - n * (2.0 * b.dir.dot(&n));
-    let mut dropped = 0.0;
-    let mut push = |dir: Vector3<f64>, weight: f64, reflections: u32| {
-        let side = dir.dot(&h.geometric_normal);
-        if weight < MIN_WEIGHT || side.abs() < 1e-12 {
-            dropped += weight;
-            return;
-        }
-        out.push(Branch {
-            origin: h.point + dir * (offset / side.abs().max(1e-3)),
-            dir,
-            weight,
-            depth: b.depth + 1,
-            reflections,
-            ..*b
-        });
-    };
-    let reflected_weight = b.weight * (1.0 - transmittance);
     // A reflection stays on the side it came from (an interpolated normal may send it through).
-    if (reflected.dot(&h.geometric_normal) < 0.0) != entering {
-        push(reflected.normalize(), reflected_weight, b.reflections + 1);
-    } else {
-        push(Vector3::zeros(), reflected_weight, 0);
-    }
-    if let Some(r) = refracted {
-        push(r.dir.normalize(), b.weight * transmittance, b.reflections);
+    let reflected =
+        ((reflected.dot(&h.geometric_normal) < 0.0) != entering).then(|| reflected.normalize());
+    let branches = [
+        (
+            reflected,
+            b.weight * (1.0 - transmittance),
+            b.reflections + 1,
+        ),
+        (
+            refracted.map(|r| r.dir.normalize()),
+            b.weight * transmittance,
+            b.reflections,
+        ),
+    ];
+    let mut dropped = 0.0;
+    for (dir, weight, reflections) in branches {
+        let side = dir.map_or(0.0, |d| d.dot(&h.geometric_normal));
+        match dir {
+            Some(dir) if weight >= MIN_WEIGHT && side.abs() >= 1e-12 => out.push(Branch {
+                origin: h.point + dir * (offset / side.abs().max(1e-3)),
+                dir,
+                weight,
+                depth: b.depth + 1,
+                reflections,
+                ..*b
+            }),
+            _ => dropped += weight,
+        }
     }
     dropped
 }
