@@ -17,11 +17,12 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
-use super::reconstruct::{ScanKind, SCAN_VIEWS};
+use super::reconstruct::{Rig, ScanKind, SCAN_VIEWS};
+use super::ObjectMesh;
 use crate::calibrate::board::{read_images, Board};
 use crate::calibrate::camera::{calibrate_camera, CameraOptions};
 use crate::calibrate::screen;
@@ -104,14 +105,8 @@ pub fn run_calibrated_bench(
         {
             continue;
         }
-        let mesh_path = o.meshes.join(format!("{object}_scan.ply"));
-        if !mesh_path.is_file() {
-            bail!(
-                "{}: no such mesh (--meshes names the folder of {{object}}_scan.ply)",
-                mesh_path.display()
-            );
-        }
-        let r = run_object(o, object, &mesh_path, progress, log)?;
+        let mesh = ObjectMesh::locate(&o.meshes, object)?;
+        let r = run_object(o, object, &mesh, progress, log)?;
         results.push(r);
         write_results(&o.work, &results)?;
     }
@@ -123,13 +118,13 @@ pub fn run_calibrated_bench(
 fn run_object(
     o: &CalibratedBenchOptions,
     object: &str,
-    mesh_path: &Path,
+    mesh: &ObjectMesh,
     progress: &dyn Progress,
     log: &dyn Fn(&str),
 ) -> Result<CalibratedRun> {
     let scans = o.work.join("scans");
     let true_dir = scans.join(format!("{object}_true"));
-    ensure_scan(mesh_path, &true_dir, log)?;
+    ensure_scan(mesh, &true_dir, log)?;
     let truth_scan = Scan::open(&true_dir)?;
     log(&format!("{object}: calibrating from the images"));
     let calibrated_dir = scans.join(format!("{object}_calibrated"));
@@ -172,19 +167,19 @@ fn run_object(
 
 /// Simulates the noisy scan with a distorting lens and the calibration images, and decodes it,
 /// unless `dir` already holds it.
-fn ensure_scan(mesh_path: &Path, dir: &Path, log: &dyn Fn(&str)) -> Result<()> {
+fn ensure_scan(object: &ObjectMesh, dir: &Path, log: &dyn Fn(&str)) -> Result<()> {
     if dir.join("decoded").join("summary.json").is_file() {
         return Ok(());
     }
-    let mesh = read_mesh(mesh_path)?;
+    let mesh = object.read()?;
     let options = crate::simulate::SimulateOptions {
         distortion: LENS,
         calibration_images: true,
-        ..ScanKind::Noisy.simulate_options()
+        ..ScanKind::Noisy.simulate_options(&Rig::default())
     };
     log(&format!(
         "simulating {} with calibration images into {}",
-        mesh_path.display(),
+        object.describe(),
         dir.display()
     ));
     let t0 = Instant::now();

@@ -33,6 +33,10 @@ pub struct GradientBenchReport {
     pub queries: usize,
     pub used: usize,
     pub drops: Drops,
+    /// The term's weighted mean over the rays used (screen form: mm² on the monitor; direction
+    /// form: unitless), on the mesh given: on the true shape, how far the data model is from
+    /// the captures.
+    pub mean_loss: f64,
     pub seconds_per_gradient: f64,
     pub seconds_per_view: f64,
     pub seconds_embree_only: f64,
@@ -90,7 +94,7 @@ pub fn run(
         batches: Mutex::new(Vec::new()),
     };
     let acc = evaluate(&recording)?;
-    let (used, drops) = (acc.used, acc.drops);
+    let (used, drops, mean_loss) = (acc.used, acc.drops, acc.loss / acc.weight);
     let batches = recording.batches.into_inner().expect("not poisoned");
     let queries: usize = batches.iter().map(|(b, _)| b.len()).sum();
     let mut t_full = Vec::new();
@@ -120,6 +124,7 @@ pub fn run(
         queries,
         used,
         drops,
+        mean_loss,
         seconds_per_gradient: full,
         seconds_per_view: full / views.len().max(1) as f64,
         seconds_embree_only: raw,

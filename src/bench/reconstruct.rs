@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
+use super::ObjectMesh;
 use crate::decode::{decode_scan, DecodeOptions};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::hull::{visual_hull, HullOptions};
@@ -54,11 +55,14 @@ impl ScanKind {
         }
     }
 
-    /// The simulator's options for this kind of scan.
-    pub fn simulate_options(self) -> SimulateOptions {
+    /// The simulator's options for this kind of scan on `rig`.
+    pub fn simulate_options(self, rig: &Rig) -> SimulateOptions {
         let noisy = self != ScanKind::Exact;
         SimulateOptions {
             views: SCAN_VIEWS,
+            width: rig.width,
+            height: rig.height,
+            fill: rig.fill,
             decoded_only: !noisy,
             spp: if noisy { 4 } else { 1 },
             noise: if noisy { 2.0 } else { 0.0 },
@@ -81,6 +85,38 @@ impl std::fmt::Display for ScanKind {
     }
 }
 
+/// The simulated camera: image size (px) and the share of the image height the object fills.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Rig {
+    pub width: u32,
+    pub height: u32,
+    pub fill: f64,
+}
+
+impl Default for Rig {
+    /// The simulator's defaults (1280×960, fill 0.6); results written before the rig was
+    /// recorded were made with it.
+    fn default() -> Self {
+        let s = SimulateOptions::default();
+        Self {
+            width: s.width,
+            height: s.height,
+            fill: s.fill,
+        }
+    }
+}
+
+impl Rig {
+    /// Suffix of the scan folders: none for the default rig.
+    fn folder_suffix(&self) -> String {
+        if *self == Rig::default() {
+            String::new()
+        } else {
+            format!("_{}x{}_fill{}", self.width, self.height, self.fill)
+        }
+    }
+}
+
 /// What to run.
 #[derive(Clone, Debug)]
 pub struct BenchOptions {
@@ -93,6 +129,7 @@ pub struct BenchOptions {
     /// View counts, each taken evenly from the 72.
     pub views: Vec<usize>,
     pub scans: Vec<ScanKind>,
+    pub rig: Rig,
 }
 
 /// One reconstruction, evaluated.
@@ -100,6 +137,8 @@ pub struct BenchOptions {
 pub struct BenchRun {
     pub object: String,
     pub scan: ScanKind,
+    #[serde(default)]
+    pub rig: Rig,
     pub preset: Preset,
     pub views: usize,
     /// Hull + stages, seconds (for `drt`: up to the budget).
@@ -138,10 +177,11 @@ pub fn run_bench(
     let mut presets = o.presets.clone();
     presets.sort_by_key(|p| *p == Preset::Drt);
     for object in &o.objects {
-        let mesh_path = o.meshes.join(format!("{object}_scan.ply"));
+        let object_mesh = ObjectMesh::locate(&o.meshes, object)?;
         for &kind in &o.scans {
-            let scan_dir = o.work.join("scans").join(format!("{object}_{kind}"));
-            ensure_scan(&mesh_path, &scan_dir, kind, log)?;
+            let scan_dir =
+                (o.work.join("scans")).join(format!("{object}_{kind}{}", o.rig.folder_suffix()));
+            ensure_scan(&object_mesh, &scan_dir, kind, &o.rig, log)?;
             let scan = Scan::open(&scan_dir)?;
             let truth = read_mesh(&scan_dir.join("ground_truth.ply"))?;
             for &views in &o.views {
@@ -149,6 +189,7 @@ pub fn run_bench(
                     let case = Case {
                         object,
                         kind,
+                        rig: o.rig,
                         preset,
                         views,
                     };
@@ -177,13 +218,7 @@ fn check_options(o: &BenchOptions) -> Result<()> {
         }
     }
     for object in &o.objects {
-        let mesh_path = o.meshes.join(format!("{object}_scan.ply"));
-        if !mesh_path.is_file() {
-            bail!(
-                "{}: no such mesh (--meshes names the folder of {{object}}_scan.ply)",
-                mesh_path.display()
-            );
-        }
+        ObjectMesh::locate(&o.meshes, object)?;
     }
     Ok(())
 }
@@ -192,6 +227,7 @@ fn check_options(o: &BenchOptions) -> Result<()> {
 struct Case<'a> {
     object: &'a str,
     kind: ScanKind,
+    rig: Rig,
     preset: Preset,
     views: usize,
 }
@@ -201,6 +237,7 @@ impl Case<'_> {
     fn is(&self, r: &BenchRun) -> bool {
         r.object == self.object
             && r.scan == self.kind
+            && r.rig == self.rig
             && r.preset == self.preset
             && r.views == self.views
     }
@@ -212,6 +249,7 @@ impl Case<'_> {
             .filter(|r| {
                 r.object == self.object
                     && r.scan == self.kind
+                    && r.rig == self.rig
                     && r.views == self.views
                     && r.preset != Preset::Drt
             })
@@ -221,25 +259,35 @@ impl Case<'_> {
 
     fn label(&self) -> String {
         format!(
-            "{}_{}_{}_v{}",
-            self.object, self.kind, self.preset, self.views
+            "{}_{}{}_{}_v{}",
+            self.object,
+            self.kind,
+            self.rig.folder_suffix(),
+            self.preset,
+            self.views
         )
     }
 }
 
 /// Simulates (and for `noisy`, decodes) the scan unless `dir` already holds it.
-fn ensure_scan(mesh_path: &Path, dir: &Path, kind: ScanKind, log: &dyn Fn(&str)) -> Result<()> {
+fn ensure_scan(
+    object: &ObjectMesh,
+    dir: &Path,
+    kind: ScanKind,
+    rig: &Rig,
+    log: &dyn Fn(&str),
+) -> Result<()> {
     if dir.join("decoded").join("summary.json").is_file() {
         return Ok(());
     }
-    let mesh = read_mesh(mesh_path)?;
+    let mesh = object.read()?;
     log(&format!(
         "simulating {} into {}",
-        mesh_path.display(),
+        object.describe(),
         dir.display()
     ));
     let t0 = Instant::now();
-    simulate(&mesh, dir, &kind.simulate_options(), |_| ())?;
+    simulate(&mesh, dir, &kind.simulate_options(rig), |_| ())?;
     if kind != ScanKind::Exact {
         let scan = Scan::open(dir)?;
         let views: Vec<usize> = (0..SCAN_VIEWS).collect();
@@ -318,7 +366,8 @@ fn run_one(
     let (curve, within, seconds) =
         stage_curve(&hull, truth, seconds_hull, &ck.stages, budget, dir)?;
     // The result is the stage within the budget that fits the held-out views best.
-    let s = best_stage(&ck.stages, within).context("the run finished no stage")?;
+    let s = best_stage(&ck.stages, settings.warmup_stages, within)
+        .context("the run finished no stage")?;
     let mesh = read_mesh(&stage_path(dir, s))?;
     let e: EvalReport = evaluate(&mesh, truth, &EvalOptions::default())?;
     let f = |t: f64| {
@@ -330,6 +379,7 @@ fn run_one(
     Ok(BenchRun {
         object: case.object.into(),
         scan: case.kind,
+        rig: case.rig,
         preset: case.preset,
         views: case.views,
         seconds,

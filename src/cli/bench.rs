@@ -8,6 +8,7 @@ use clap::{Args, Subcommand};
 use crate::bench::reconstruct::ScanKind;
 use crate::bench::trace::{self, TraceBenchOptions, TraceBenchReport};
 use crate::loss::refraction::ResidualForm;
+use crate::loss::Robust;
 use crate::mesh::io::read_mesh;
 use crate::mesh::shapes;
 use crate::reconstruct::config::Preset;
@@ -54,8 +55,9 @@ pub struct ReconstructBenchArgs {
     /// the runs results.json already holds.
     #[arg(long, default_value = "target/bench-reconstruct")]
     pub work: PathBuf,
-    /// Objects, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "pig,horse,dog")]
+    /// Objects, comma-separated: {object}_scan.ply in --meshes, or `block` (a glass block with
+    /// flat, parallel faces on a plinth, built in).
+    #[arg(long, value_delimiter = ',', default_value = "pig,horse,dog,block")]
     pub objects: Vec<String>,
     /// Presets, comma-separated (drt gets the time of the slowest other preset).
     #[arg(
@@ -68,9 +70,16 @@ pub struct ReconstructBenchArgs {
     /// View counts, comma-separated, taken evenly from the scan's 72.
     #[arg(long, value_delimiter = ',', default_value = "72,36,18,9")]
     pub views: Vec<usize>,
-    /// Scans: exact (decoded-only correspondences) and/or noisy (noise 2, blur 0.7, decoded).
+    /// Scans: exact (decoded-only correspondences), noisy (noise 2, blur 0.7, 4 samples per
+    /// pixel, decoded) and/or physical (as noisy, with Fresnel and internal reflections).
     #[arg(long, value_enum, value_delimiter = ',', default_value = "exact,noisy")]
     pub scans: Vec<ScanKind>,
+    /// Image size of the simulated camera, WxH.
+    #[arg(long, default_value = "1280x960", value_parser = super::common::parse_size)]
+    pub size: (u32, u32),
+    /// Share of the image height the object fills.
+    #[arg(long, default_value_t = 0.6, value_parser = super::common::positive_share)]
+    pub fill: f64,
 }
 
 #[derive(Args, Debug)]
@@ -93,6 +102,12 @@ pub struct GradientArgs {
     /// Paths with up to this many refractions (even) are used.
     #[arg(long = "max-refractions", default_value_t = 2)]
     pub max_refractions: u32,
+    /// Robust loss: l2, huber:δ or cauchy:δ (δ in the residual's unit).
+    #[arg(long, default_value = "l2", value_parser = super::common::parse_robust)]
+    pub robust: Robust,
+    /// Rays per pixel side (a pixel modelled by the mean of an n×n grid of rays), 1..=4.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=4))]
+    pub footprint: u32,
     /// Timed evaluations (the median is reported).
     #[arg(long, default_value_t = 3)]
     pub repeats: usize,
@@ -171,7 +186,7 @@ fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
 }
 
 fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
-    use crate::bench::reconstruct::{run_bench, BenchOptions};
+    use crate::bench::reconstruct::{run_bench, BenchOptions, Rig};
     let o = BenchOptions {
         meshes: a.meshes.clone(),
         work: a.work.clone(),
@@ -179,6 +194,11 @@ fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
         presets: a.presets.clone(),
         views: a.views.clone(),
         scans: a.scans.clone(),
+        rig: Rig {
+            width: a.size.0,
+            height: a.size.1,
+            fill: a.fill,
+        },
     };
     let bars = super::common::StageBars::new();
     let log = |s: &str| bars.bar.suspend(|| eprintln!("{s}"));
@@ -220,8 +240,9 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         max_refractions: a.max_refractions,
         normals: a.normals,
         form: a.form,
-        robust: crate::loss::Robust::L2,
+        robust: a.robust,
         min_cos: 0.0,
+        footprint: a.footprint,
     };
     eprintln!(
         "bench gradient: {} ({} faces), {} views of {} ({} left out by decode), targets loaded in {load_s:.1} s",
@@ -253,6 +274,14 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         r.drops.grazing,
         r.drops.near_critical,
         r.drops.non_finite
+    );
+    outln!(
+        "mean loss over the rays used: {:.4e} ({})",
+        r.mean_loss,
+        match a.form {
+            ResidualForm::Screen => "mm² on the monitor",
+            ResidualForm::Direction => "unitless",
+        }
     );
     outln!(
         "loss + gradient: {:.3} s per gradient over all views, {:.1} ms per view; {:.2} M camera rays/s, {:.2} M queries/s",

@@ -4,6 +4,7 @@
 use anyhow::{bail, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::loss::Robust;
 use crate::reconstruct::{IterationRecord, Progress, StageReport};
 use crate::util::fixed::MAX_SIDE_PX;
 
@@ -99,6 +100,20 @@ pub fn share(s: &str) -> Result<f64, String> {
 }
 
 /// A share in (0, 1].
+/// A robust loss: `l2`, `huber:δ` or `cauchy:δ` with δ > 0.
+pub fn parse_robust(s: &str) -> Result<Robust, String> {
+    let scale = |d: &str| match d.parse::<f64>() {
+        Ok(v) if v > 0.0 && v.is_finite() => Ok(v),
+        _ => Err(format!("'{d}': the scale δ must be a positive number")),
+    };
+    match s.split_once(':') {
+        None if s.eq_ignore_ascii_case("l2") => Ok(Robust::L2),
+        Some((k, d)) if k.eq_ignore_ascii_case("huber") => scale(d).map(Robust::Huber),
+        Some((k, d)) if k.eq_ignore_ascii_case("cauchy") => scale(d).map(Robust::Cauchy),
+        _ => Err(format!("'{s}': use l2, huber:δ or cauchy:δ")),
+    }
+}
+
 pub fn positive_share(s: &str) -> Result<f64, String> {
     let v = finite(s)?;
     if v > 0.0 && v <= 1.0 {
@@ -236,6 +251,19 @@ mod tests {
         assert_eq!(auto_or_open_share("AUTO").unwrap(), AutoShare(None));
         assert!(auto_or_open_share("-0.5").is_err() && auto_or_open_share("1").is_err());
         assert_eq!(parse_size("640x480").unwrap(), (640, 480));
+        assert_eq!(parse_robust("L2"), Ok(Robust::L2));
+        assert_eq!(parse_robust("cauchy:0.5"), Ok(Robust::Cauchy(0.5)));
+        assert_eq!(parse_robust("huber:2"), Ok(Robust::Huber(2.0)));
+        for bad in [
+            "cauchy",
+            "cauchy:0",
+            "huber:-1",
+            "huber:nan",
+            "tukey:1",
+            "l2:1",
+        ] {
+            assert!(parse_robust(bad).is_err(), "{bad}");
+        }
         assert!(parse_size("100000x100000").is_err() && parse_size("0x4").is_err());
     }
 }

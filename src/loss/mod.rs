@@ -37,6 +37,15 @@ pub enum Robust {
 }
 
 impl Robust {
+    /// The same penalty with its scale δ multiplied by `factor`.
+    pub fn scaled(self, factor: f64) -> Robust {
+        match self {
+            Robust::L2 => Robust::L2,
+            Robust::Huber(d) => Robust::Huber(d * factor),
+            Robust::Cauchy(d) => Robust::Cauchy(d * factor),
+        }
+    }
+
     /// ρ(r²) and dρ/d(r²).
     #[inline]
     pub fn apply(&self, r2: f64) -> (f64, f64) {

@@ -1,5 +1,6 @@
 //! The refraction term (docs/architecture.md §4): for each object pixel with a decoded monitor point Q, the
-//! modelled path through the current mesh should reach Q.
+//! modelled path through the current mesh should reach Q. A pixel is modelled by its centre ray
+//! or by the mean residual of a grid of rays over its area (its footprint).
 //!
 //! Per view, Embree traces every pixel ray through the mesh in batches, recording the triangles
 //! it refracts at ([`trace_chunk`]). Then, per pixel and in parallel, the path is recomputed in
@@ -54,6 +55,41 @@ pub struct RefractionSettings {
     /// thousands); 0 keeps every ray with a usable derivative.
     #[serde(default)]
     pub min_cos: f64,
+    /// Rays per pixel side: each pixel is modelled by the mean of an n×n grid of rays over its
+    /// area (1: the centre ray).
+    #[serde(default = "one")]
+    pub footprint: u32,
+}
+
+fn one() -> u32 {
+    1
+}
+
+/// The most rays of a pixel's footprint.
+pub const MAX_FOOTPRINT_RAYS: usize = 16;
+
+/// Offsets (px) of an n×n footprint's rays from the pixel centre: the centres of an n×n grid
+/// over the pixel.
+pub fn footprint_offsets(n: u32) -> Vec<(f64, f64)> {
+    let at = |i: u32| (i as f64 + 0.5) / n as f64 - 0.5;
+    (0..n * n).map(|k| (at(k % n), at(k / n))).collect()
+}
+
+/// How a view's camera turns a pixel offset into a ray, world frame: `right` and `down` are the
+/// camera's x and y axes divided by fx and fy (one pixel's step at unit depth, mm per mm),
+/// `forward` its optical axis. Lens distortion is taken as constant across a pixel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelAxes {
+    pub right: V3,
+    pub down: V3,
+    pub forward: V3,
+}
+
+impl PixelAxes {
+    /// The unit direction of the ray `offset` (px) from the one along unit `dir`.
+    pub fn offset(&self, dir: &V3, (dx, dy): (f64, f64)) -> V3 {
+        (dir / dir.dot(&self.forward) + self.right * dx + self.down * dy).normalize()
+    }
 }
 
 /// One object pixel of a view: its camera ray (world frame, unit direction), the decoded monitor
@@ -74,6 +110,8 @@ pub struct ViewTargets {
     /// A point of the monitor plane and its unit normal.
     pub monitor_point: Point3<f64>,
     pub monitor_normal: V3,
+    /// The camera's pixel axes (footprint rays); `None` models pixels by their centre rays.
+    pub pixel_axes: Option<PixelAxes>,
     pub pixels: Vec<PixelTarget>,
 }
 
@@ -85,6 +123,7 @@ impl ViewTargets {
             eye: self.eye,
             monitor_point: self.monitor_point,
             monitor_normal: self.monitor_normal,
+            pixel_axes: self.pixel_axes,
             pixels: Vec::new(),
         }
     }
@@ -125,12 +164,12 @@ pub enum DropReason {
 }
 
 /// Loss of one pixel and its gradient, recorded into `grad` (vertex, ∂L/∂position) and
-/// `ngrad` (vertex, ∂L/∂unit vertex normal).
+/// `ngrad` (vertex, ∂L/∂unit vertex normal), an entry per triangle vertex a ray met.
 #[derive(Clone, Debug, Default)]
 pub struct PixelGradient {
     pub loss: f64,
-    pub grad: ArrayVec<(u32, V3), { 3 * MAX_TRAIL }>,
-    pub ngrad: ArrayVec<(u32, V3), { 3 * MAX_TRAIL }>,
+    pub grad: Vec<(u32, V3)>,
+    pub ngrad: Vec<(u32, V3)>,
 }
 
 /// Everything the per-pixel computation reads about the current mesh.
@@ -150,33 +189,53 @@ pub fn pixel_gradient(
     prims: &[u32],
 ) -> Result<PixelGradient, DropReason> {
     let mut out = PixelGradient::default();
-    pixel_gradient_into(mesh, s, view, px, prims, &mut out).map(|()| out)
+    footprint_gradient_into(mesh, s, view, px, &[(px.dir, Ok(prims))], &mut out).map(|()| out)
 }
 
-/// As [`pixel_gradient`], into `out` (overwritten; reused across pixels by the hot loop).
-pub fn pixel_gradient_into(
+/// One ray of a pixel's footprint: its unit direction (world frame) and the triangles its
+/// traced path refracted at, or why that path cannot be compared.
+pub type FootprintRay<'a> = (V3, Result<&'a [u32], DropReason>);
+
+/// The loss and gradient of pixel `px` from the rays of its footprint (into `out`, overwritten;
+/// reused across pixels by the hot loop). The pixel's modelled residual is the mean of its
+/// rays' residuals (for the screen form: the footprint's mean monitor point against the decoded
+/// point), over the rays whose paths can be compared; the pixel is dropped, with the first
+/// ray's reason, when none can. One ray is the centre-ray term.
+pub fn footprint_gradient_into(
     mesh: &MeshState,
     s: &RefractionSettings,
     view: &ViewTargets,
     px: &PixelTarget,
-    prims: &[u32],
+    rays: &[FootprintRay],
     out: &mut PixelGradient,
 ) -> Result<(), DropReason> {
-    if prims.len() > MAX_TRAIL {
-        return Err(DropReason::RefractionCount);
+    let mut paths: ArrayVec<(Forward, Exit), MAX_FOOTPRINT_RAYS> = ArrayVec::new();
+    let mut first_drop = None;
+    for (dir, prims) in rays.iter().take(MAX_FOOTPRINT_RAYS) {
+        let path = (*prims).and_then(|p| {
+            let f = forward(mesh, s, &view.eye, dir, p)?;
+            let e = exit_residual(s, view, &px.target, &f.o, &f.d)?;
+            Ok((f, e))
+        });
+        match path {
+            Ok(p) => paths.push(p),
+            Err(r) => _ = first_drop.get_or_insert(r),
+        }
     }
-    let mut chain: ArrayVec<Interface, MAX_TRAIL> = ArrayVec::new();
-    let (mut o, mut d) = (view.eye, px.dir);
-    for &prim in prims {
-        let it = refract_at(mesh, s, &o, &d, prim)?;
-        (o, d) = (it.hit.point, it.snell.out / it.out_norm);
-        chain.push(it);
+    if paths.is_empty() {
+        return Err(first_drop.unwrap_or(DropReason::NoHit));
     }
-    let (loss, mut gp, mut gd) = exit_residual(s, view, px, &o, &d)?;
+    let m = paths.len() as f64;
+    let mean = paths.iter().map(|(_, e)| e.r).sum::<V3>() / m;
+    let (loss, dr2) = s.robust.apply(mean.norm_squared());
+    let gr = mean * (2.0 * dr2 * px.weight / m);
     out.grad.clear();
     out.ngrad.clear();
-    for it in chain.iter().rev() {
-        (gp, gd) = interface_adjoint(mesh, it, &gp, &gd, out);
+    for (f, e) in &paths {
+        let (mut gp, mut gd) = exit_adjoint(s, view, e, &f.d, &gr);
+        for it in f.chain.iter().rev() {
+            (gp, gd) = interface_adjoint(mesh, it, &gp, &gd, out);
+        }
     }
     let finite = loss.is_finite()
         && out
@@ -187,8 +246,36 @@ pub fn pixel_gradient_into(
     if !finite {
         return Err(DropReason::NonFinite);
     }
-    out.loss = loss;
+    out.loss = loss * px.weight;
     Ok(())
+}
+
+/// A ray's path recomputed forward: its interfaces and the exit ray (origin, unit direction).
+struct Forward {
+    chain: ArrayVec<Interface, MAX_TRAIL>,
+    o: Point3<f64>,
+    d: V3,
+}
+
+/// The ray from `eye` along `dir` through the triangles `prims`.
+fn forward(
+    mesh: &MeshState,
+    s: &RefractionSettings,
+    eye: &Point3<f64>,
+    dir: &V3,
+    prims: &[u32],
+) -> Result<Forward, DropReason> {
+    if prims.len() > MAX_TRAIL {
+        return Err(DropReason::RefractionCount);
+    }
+    let mut chain = ArrayVec::new();
+    let (mut o, mut d) = (*eye, *dir);
+    for &prim in prims {
+        let it = refract_at(mesh, s, &o, &d, prim)?;
+        (o, d) = (it.hit.point, it.snell.out / it.out_norm);
+        chain.push(it);
+    }
+    Ok(Forward { chain, o, d })
 }
 
 /// Forward through one interface: the ray (o, d) meets triangle `prim`'s plane and refracts
@@ -247,43 +334,56 @@ fn refract_at(
     })
 }
 
-/// The residual of the exit ray (o, d) against the pixel's target, weighted: the loss and its
-/// gradient with respect to o and d.
+/// The residual of an exit ray against a decoded point, and what its adjoint needs.
+struct Exit {
+    /// Screen form: Q′ − Q (mm, world frame); direction form: d − normalize(Q − o).
+    r: V3,
+    /// Screen form: distance along the exit ray to the monitor (mm) and d·ν.
+    sdist: f64,
+    dn: f64,
+}
+
+/// The residual of the exit ray (o, d) against `target` (world frame, mm).
 fn exit_residual(
     s: &RefractionSettings,
     view: &ViewTargets,
-    px: &PixelTarget,
+    target: &Point3<f64>,
     o: &Point3<f64>,
     d: &V3,
-) -> Result<(f64, V3, V3), DropReason> {
-    let (mut gp, mut gd) = (V3::zeros(), V3::zeros());
-    let loss = match s.form {
+) -> Result<Exit, DropReason> {
+    match s.form {
         ResidualForm::Screen => {
             let dn = d.dot(&view.monitor_normal);
             let sdist = (view.monitor_point - o).dot(&view.monitor_normal) / dn;
             if !(sdist > 0.0 && sdist.is_finite()) {
                 return Err(DropReason::MissedMonitor);
             }
-            let r = o + d * sdist - px.target;
-            let (loss, dr2) = s.robust.apply(r.norm_squared());
-            let gq = r * (2.0 * dr2 * px.weight);
+            let r = o + d * sdist - target;
+            Ok(Exit { r, sdist, dn })
+        }
+        ResidualForm::Direction => Ok(Exit {
+            r: d - (target - o).normalize(),
+            sdist: 0.0,
+            dn: 0.0,
+        }),
+    }
+}
+
+/// From the gradient `gr` with respect to an exit residual to the gradients with respect to the
+/// exit ray's origin and direction `d`.
+fn exit_adjoint(s: &RefractionSettings, view: &ViewTargets, e: &Exit, d: &V3, gr: &V3) -> (V3, V3) {
+    match s.form {
+        ResidualForm::Screen => {
             // Q′ = o + s d, s = ((m − o)·ν)/(d·ν).
-            gp += gq;
-            gd += gq * sdist;
-            let gs = gq.dot(d);
-            gp -= view.monitor_normal * (gs / dn);
-            gd -= view.monitor_normal * (gs * sdist / dn);
-            loss * px.weight
+            let (mut gp, mut gd) = (*gr, gr * e.sdist);
+            let gs = gr.dot(d);
+            gp -= view.monitor_normal * (gs / e.dn);
+            gd -= view.monitor_normal * (gs * e.sdist / e.dn);
+            (gp, gd)
         }
-        ResidualForm::Direction => {
-            let u = (px.target - o).normalize();
-            let r = d - u;
-            let (loss, dr2) = s.robust.apply(r.norm_squared());
-            gd += r * (2.0 * dr2 * px.weight);
-            loss * px.weight
-        }
-    };
-    Ok((loss, gp, gd))
+        // The exit point is held fixed (DRT's code).
+        ResidualForm::Direction => (V3::zeros(), *gr),
+    }
 }
 
 /// Backward through one interface: from the gradients with respect to the outgoing ray (its
@@ -358,21 +458,31 @@ pub fn add_view(
         faces: &mesh.faces,
         vertex_normals,
     };
+    let offsets = match view.pixel_axes {
+        Some(_) => footprint_offsets(s.footprint.clamp(1, 4)),
+        None => vec![(0.0, 0.0)],
+    };
     // Trace and differentiate chunk by chunk, each on one thread, so the chunk's paths stay in
     // cache between the two; then sum the chunks in order.
     let chunks: Vec<Contributions> = view
         .pixels
         .par_chunks(TRACE_CHUNK)
         .map(|chunk| -> Result<Contributions, TraceError> {
-            let rays: Vec<Ray> = chunk.iter().map(|p| Ray::new(view.eye, p.dir)).collect();
-            let mut trails = vec![Trail::default(); chunk.len()];
+            let dirs = footprint_dirs(view, chunk, &offsets);
+            let rays: Vec<Ray> = dirs.iter().map(|d| Ray::new(view.eye, *d)).collect();
+            let mut trails = vec![Trail::default(); rays.len()];
             let paths = trace_chunk(surface, &rays, &settings, Some(&mut trails))?;
             let mut c = Contributions::default();
             let mut g = PixelGradient::default();
-            for ((px, path), trail) in chunk.iter().zip(&paths).zip(&trails) {
-                match classify(&path.end, path.refractions, s.max_refractions)
-                    .and_then(|()| pixel_gradient_into(&mesh, s, view, px, trail.prims(), &mut g))
-                {
+            let mut footprint = Vec::with_capacity(offsets.len());
+            for (k, px) in chunk.iter().enumerate() {
+                let part = k * offsets.len()..(k + 1) * offsets.len();
+                footprint.clear();
+                footprint.extend(part.map(|i| {
+                    let ok = classify(&paths[i].end, paths[i].refractions, s.max_refractions);
+                    (dirs[i], ok.map(|()| trails[i].prims()))
+                }));
+                match footprint_gradient_into(&mesh, s, view, px, &footprint, &mut g) {
                     Ok(()) => c.push_pixel(&g, px.weight),
                     Err(r) => c.drops.count(r),
                 }
@@ -382,6 +492,18 @@ pub fn add_view(
         .collect::<Result<_, _>>()?;
     acc.add(&chunks);
     Ok(())
+}
+
+/// The directions of the footprint rays of `pixels`, pixel by pixel (the pixel's own ray for
+/// the single offset (0, 0)).
+fn footprint_dirs(view: &ViewTargets, pixels: &[PixelTarget], offsets: &[(f64, f64)]) -> Vec<V3> {
+    match view.pixel_axes {
+        Some(axes) if offsets.len() > 1 => pixels
+            .iter()
+            .flat_map(|p| offsets.iter().map(move |&o| axes.offset(&p.dir, o)))
+            .collect(),
+        _ => pixels.iter().map(|p| p.dir).collect(),
+    }
 }
 
 /// Whether a traced path is one the term compares.

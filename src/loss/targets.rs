@@ -6,7 +6,9 @@ use anyhow::Result;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::refraction::{PixelTarget, ViewTargets};
+use nalgebra::Vector3;
+
+use super::refraction::{PixelAxes, PixelTarget, ViewTargets};
 use crate::scan::decoded::{DecodedScan, MonitorTarget};
 use crate::scan::Scan;
 
@@ -82,7 +84,12 @@ pub fn scan_targets(
                 view: k,
                 eye: to_world * nalgebra::Point3::origin(),
                 monitor_point: screen.point(0.0, 0.0),
-                monitor_normal: screen.pose * nalgebra::Vector3::z(),
+                monitor_normal: screen.pose * Vector3::z(),
+                pixel_axes: Some(PixelAxes {
+                    right: to_world * Vector3::new(1.0 / scan.camera.fx, 0.0, 0.0),
+                    down: to_world * Vector3::new(0.0, 1.0 / scan.camera.fy, 0.0),
+                    forward: to_world * Vector3::z(),
+                }),
                 pixels,
             }))
         })

@@ -261,3 +261,77 @@ pub fn pebble() -> TriMesh {
     }
     object
 }
+
+/// Signed "inside" value of a box centred at `c` with half-sizes `half` (mm), its edges and
+/// corners rounded with radius `r`: positive inside, the distance to the surface (exact).
+fn rounded_box_field(p: Point3<f64>, c: Point3<f64>, half: Vector3<f64>, r: f64) -> f64 {
+    let q = (p - c).abs() - half.add_scalar(-r);
+    let outside = q.map(|x| x.max(0.0)).norm();
+    r - outside - q.max().min(0.0)
+}
+
+/// A glass block on a plinth, +y up and centred on the turntable axis, mm: a 100 × 50 × 40 mm
+/// block with 3 mm rounded edges standing on a 120 × 15 × 60 mm plinth with 2 mm rounded
+/// edges. Its large flat, parallel faces are where refraction constrains position least (a ray
+/// through two parallel faces leaves parallel to itself whatever their distance). Built by
+/// [`implicit_surface`] every `step` mm.
+pub fn glass_block(step: f64) -> TriMesh {
+    let field = |p: Point3<f64>| {
+        let block = rounded_box_field(
+            p,
+            Point3::new(0.0, 10.0, 0.0),
+            Vector3::new(50.0, 25.0, 20.0),
+            3.0,
+        );
+        let plinth = rounded_box_field(
+            p,
+            Point3::new(0.0, -22.5, 0.0),
+            Vector3::new(60.0, 7.5, 30.0),
+            2.0,
+        );
+        block.max(plinth)
+    };
+    // The grid is offset from the faces' planes, so no sample lands on a face (marching cubes
+    // then places every vertex of a flat part on its plane).
+    let lo = Point3::new(-64.37, -34.37, -34.37);
+    implicit_surface(field, lo, lo + Vector3::repeat(128.0), step)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Volume of a box of sides `s` with edges and corners rounded by `r`, mm³.
+    fn rounded_box_volume(s: [f64; 3], r: f64) -> f64 {
+        let [a, b, c] = s.map(|x| x - 2.0 * r);
+        a * b * c
+            + 2.0 * r * (a * b + b * c + a * c)
+            + std::f64::consts::PI * r * r * (a + b + c)
+            + 4.0 / 3.0 * std::f64::consts::PI * r.powi(3)
+    }
+
+    #[test]
+    fn the_glass_block_is_a_valid_solid_with_flat_parallel_faces() {
+        let mesh = glass_block(1.0);
+        crate::mesh::validate::ensure_valid(&mesh).unwrap();
+        let truth = rounded_box_volume([100.0, 50.0, 40.0], 3.0)
+            + rounded_box_volume([120.0, 15.0, 60.0], 2.0);
+        let v = mesh.signed_volume();
+        assert!((v / truth - 1.0).abs() < 0.01, "volume {v} against {truth}");
+        // The block's front and back faces: every vertex within their flat parts lies on the
+        // planes z = ±20 mm.
+        let flat = |p: &&Point3<f64>| p.x.abs() < 45.0 && p.y > -10.0 && p.y < 30.0;
+        let mut on_faces = [0, 0];
+        for p in mesh
+            .positions
+            .iter()
+            .filter(flat)
+            .filter(|p| p.z.abs() >= 19.0)
+        {
+            let off = (p.z.abs() - 20.0).abs();
+            assert!(off < 1e-4, "vertex {p} is {off} mm off its face");
+            on_faces[(p.z > 0.0) as usize] += 1;
+        }
+        assert!(on_faces.iter().all(|&n| n > 1000), "{on_faces:?}");
+    }
+}

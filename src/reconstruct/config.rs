@@ -97,16 +97,39 @@ pub struct Settings {
     /// Refraction rays meeting an interface with cos θi or cos θt below this are dropped
     /// (bounded per-ray influence; 0: only those without a usable derivative).
     pub min_cos: f64,
+    /// Refraction rays per pixel side: a pixel is modelled by the mean residual of an n×n grid
+    /// of rays over its area (1: its centre ray; the cost grows as n²).
+    #[serde(default = "one")]
+    pub footprint: u32,
+    /// Stage edges are at least this many camera pixels long at the object (a pixel's width at
+    /// the object's distance; 0: no floor): finer triangles than the captures resolve are shaped
+    /// by noise.
+    #[serde(default)]
+    pub min_edge_px: f64,
+    /// The robust penalty's scale in the first stage after the warm-up, as a multiple of
+    /// `robust`'s; it shrinks geometrically to `robust`'s at the last stage (graduated
+    /// non-convexity: far from the shape every residual is large, and a small scale would
+    /// hold back the very rays that must move it). 1: the same scale throughout.
+    #[serde(default = "one_f64")]
+    pub robust_anneal: f64,
     /// Share of the views held out of the optimisation to validate every stage on (0: none);
     /// the stage that fits them best is the result.
     pub validation_share: f64,
     /// Warm-up stages run before `stages`: the first `warmup_stages` stages of the `drt` preset
-    /// (its optimiser, learning rates, terms, weights and iterations; seed and target weights
-    /// from here), all at this schedule's `start_edge`. DRT's clamped SGD carves what the visual
+    /// (its optimiser, learning rates, terms, weights and iterations; seed, target weights and
+    /// footprint from here), all at this schedule's `start_edge`. DRT's clamped SGD carves what the visual
     /// hull filled in (a concavity no silhouette shows) within a few stages, where Large Steps
     /// from the hull does not; Large Steps then refines without SGD's plateau.
     #[serde(default)]
     pub warmup_stages: usize,
+}
+
+fn one() -> u32 {
+    1
+}
+
+fn one_f64() -> f64 {
+    1.0
 }
 
 /// The most stages of a schedule.
@@ -178,7 +201,7 @@ impl Settings {
             pixel_stride: 2,
             normals: NormalModel::Face,
             residual: ResidualForm::Direction,
-            robust: Robust::L2,
+            robust: Robust::Cauchy(0.2),
             max_refractions: 2,
             silhouette: SilhouetteForm::Distance,
             smoothness: Smoothness::LogTwoMinusCos,
@@ -186,6 +209,9 @@ impl Settings {
             warmup_stages: 3,
             validation_share: 0.1,
             min_cos: 0.0,
+            footprint: 1,
+            min_edge_px: 0.0,
+            robust_anneal: 1.0,
         };
         match preset {
             Preset::Fast => base,
@@ -318,6 +344,15 @@ impl Settings {
                 &format!("must be even and lie in 2..={max} (a ray enters and leaves)"),
             );
         }
+        if !(self.robust_anneal >= 1.0 && self.robust_anneal <= 1e3) {
+            return bad("robust_anneal", "must lie in [1, 1000]");
+        }
+        if !(self.min_edge_px >= 0.0 && self.min_edge_px <= 1e3) {
+            return bad("min_edge_px", "must lie in [0, 1000] pixels");
+        }
+        if !(1..=4).contains(&self.footprint) {
+            return bad("footprint", "rays per pixel side must lie in 1..=4");
+        }
         match self.robust {
             Robust::Huber(d) | Robust::Cauchy(d) if !(d > 0.0 && d.is_finite()) => {
                 return bad("robust", "the scale δ must be a positive number");
@@ -355,11 +390,22 @@ impl Settings {
                 target_weights: self.target_weights,
                 start_edge: self.start_edge,
                 final_edge: self.start_edge,
+                footprint: self.footprint,
                 ..Settings::preset(Preset::Drt)
             };
             (drt, g)
         } else {
-            (self.clone(), g - self.warmup_stages)
+            let k = g - self.warmup_stages;
+            let left = if self.stages > 1 {
+                (self.stages - 1 - k) as f64 / (self.stages - 1) as f64
+            } else {
+                0.0
+            };
+            let stage = Settings {
+                robust: self.robust.scaled(self.robust_anneal.powf(left)),
+                ..self.clone()
+            };
+            (stage, k)
         }
     }
 

@@ -105,7 +105,8 @@ fn choose_result(
 ) -> Result<(usize, TriMesh)> {
     let stages = &finished.checkpoint.stages;
     let last = stages.len().saturating_sub(1);
-    let best = best_stage(stages, stages.len()).unwrap_or(last);
+    let first = finished.checkpoint.settings.warmup_stages;
+    let best = best_stage(stages, first, stages.len()).unwrap_or(last);
     if best == last {
         return Ok((last, finished.mesh.clone()));
     }

@@ -113,13 +113,14 @@ pub fn validate_mesh(
     }))
 }
 
-/// The stage (index) among the first `upto` whose held-out fit is best; the last of them when
-/// the run holds out nothing. `None` when no stage is done.
-pub fn best_stage(stages: &[super::StageReport], upto: usize) -> Option<usize> {
+/// The stage (index) among the first `upto` whose held-out fit is best, from stage `first` on
+/// (the warm-up's stages carve at the coarsest edge length and are candidates only when no
+/// later stage is done); the last of them when the run holds out nothing. `None` when no stage
+/// is done.
+pub fn best_stage(stages: &[super::StageReport], first: usize, upto: usize) -> Option<usize> {
     let done = &stages[..upto.min(stages.len())];
-    let scored = done
-        .iter()
-        .enumerate()
+    let from = if done.len() > first { first } else { 0 };
+    let scored = (done.iter().enumerate().skip(from))
         .filter_map(|(i, s)| s.validation.map(|v| (i, v.total)))
         .filter(|(_, t)| t.is_finite());
     scored
@@ -153,18 +154,22 @@ mod tests {
     }
 
     #[test]
-    fn the_best_stage_is_the_lowest_held_out_fit_within_the_stages_done() {
+    fn the_best_stage_is_the_lowest_held_out_fit_after_the_warm_up_within_the_stages_done() {
         let stages: Vec<StageReport> = [0.5, 0.2, 0.3, 0.1]
             .iter()
             .enumerate()
             .map(|(i, &t)| stage(i, Some(t)))
             .collect();
-        assert_eq!(best_stage(&stages, 4), Some(3));
-        assert_eq!(best_stage(&stages, 3), Some(1));
-        assert_eq!(best_stage(&stages, 0), None);
+        assert_eq!(best_stage(&stages, 0, 4), Some(3));
+        assert_eq!(best_stage(&stages, 0, 3), Some(1));
+        assert_eq!(best_stage(&stages, 0, 0), None);
+        // Stages before `first` (the warm-up) are candidates only when no later one is done.
+        assert_eq!(best_stage(&stages, 2, 3), Some(2));
+        assert_eq!(best_stage(&stages, 2, 4), Some(3));
+        assert_eq!(best_stage(&stages, 3, 3), Some(1));
         let unvalidated: Vec<StageReport> = (0..3).map(|i| stage(i, None)).collect();
-        assert_eq!(best_stage(&unvalidated, 3), Some(2));
+        assert_eq!(best_stage(&unvalidated, 0, 3), Some(2));
         let with_nan = vec![stage(0, Some(f64::NAN)), stage(1, Some(0.4))];
-        assert_eq!(best_stage(&with_nan, 2), Some(1));
+        assert_eq!(best_stage(&with_nan, 0, 2), Some(1));
     }
 }

@@ -5,7 +5,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use glasscan::loss::refraction::{
-    add_view, pixel_gradient, MeshState, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
+    add_view, footprint_gradient_into, footprint_offsets, pixel_gradient, MeshState, PixelAxes,
+    PixelGradient, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
 };
 use glasscan::loss::silhouette::{contour_edges, edge_gradient, SilhouetteForm};
 use glasscan::loss::smoothness::{add_smoothness, Smoothness};
@@ -64,7 +65,8 @@ struct Case {
     s: RefractionSettings,
     view: ViewTargets,
     px: PixelTarget,
-    prims: Vec<u32>,
+    /// The pixel's rays (one: its centre ray) and the triangles each refracts at.
+    rays: Vec<(V3, Vec<u32>)>,
 }
 
 fn settings(
@@ -81,6 +83,7 @@ fn settings(
         form,
         robust,
         min_cos: 0.0,
+        footprint: 1,
     }
 }
 
@@ -133,6 +136,7 @@ fn case(
             eye,
             monitor_point: Point3::new(0.0, 0.0, monitor_z),
             monitor_normal: V3::z(),
+            pixel_axes: None,
             pixels: vec![],
         },
         px: PixelTarget {
@@ -140,7 +144,7 @@ fn case(
             target,
             weight: 0.7,
         },
-        prims: trails[0].prims().to_vec(),
+        rays: vec![(dir, trails[0].prims().to_vec())],
         mesh,
     }
 }
@@ -153,14 +157,21 @@ fn state<'a>(mesh: &'a TriMesh, normals: &'a Option<Vec<V3>>) -> MeshState<'a> {
     }
 }
 
-fn loss(c: &Case, mesh: &TriMesh) -> Result<f64, DropReason> {
+/// The pixel's loss and gradient on `mesh` from its rays.
+fn gradient(c: &Case, mesh: &TriMesh) -> Result<PixelGradient, DropReason> {
     let vn = (c.s.normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
-    pixel_gradient(&state(mesh, &vn), &c.s, &c.view, &c.px, &c.prims).map(|g| g.loss)
+    let rays: Vec<_> = c.rays.iter().map(|(d, p)| (*d, Ok(&p[..]))).collect();
+    let mut g = PixelGradient::default();
+    footprint_gradient_into(&state(mesh, &vn), &c.s, &c.view, &c.px, &rays, &mut g).map(|()| g)
+}
+
+fn loss(c: &Case, mesh: &TriMesh) -> Result<f64, DropReason> {
+    gradient(c, mesh).map(|g| g.loss)
 }
 
 fn analytic(c: &Case) -> Vec<V3> {
     let vn = (c.s.normals == NormalModel::Vertex).then(|| c.mesh.vertex_normals());
-    let g = pixel_gradient(&state(&c.mesh, &vn), &c.s, &c.view, &c.px, &c.prims).unwrap();
+    let g = gradient(c, &c.mesh).unwrap();
     let mut acc = Accumulator::new(c.mesh.positions.len(), vn.is_some());
     let mut contributions = Contributions::default();
     contributions.push_pixel(&g, c.px.weight);
@@ -239,7 +250,7 @@ fn refraction_gradient_matches_finite_differences_on_random_slabs() {
                     -10.0,
                     seed,
                 );
-                assert_eq!(c.prims.len(), 2);
+                assert_eq!(c.rays[0].1.len(), 2);
                 fd_check(
                     &c,
                     1e-6,
@@ -248,6 +259,90 @@ fn refraction_gradient_matches_finite_differences_on_random_slabs() {
             }
         }
     }
+}
+
+/// The case of one pixel seen from `eye` looking down −z, its footprint `n`×`n` rays over a
+/// pixel 0.2 rad wide.
+fn footprint_case(mesh: TriMesh, s: RefractionSettings, eye: Point3<f64>, n: u32) -> Case {
+    let pixel_rad = 0.2;
+    let axes = PixelAxes {
+        right: V3::x() * pixel_rad,
+        down: V3::y() * pixel_rad,
+        forward: -V3::z(),
+    };
+    let dir = -V3::z();
+    let mut c = case(mesh, s, eye, dir, -10.0, 3);
+    let surface = MeshSurface::new(&c.mesh, c.s.normals).unwrap();
+    let ps = PathSettings {
+        ior: c.s.ior,
+        ior_air: c.s.ior_air,
+        max_refractions: 8,
+    };
+    c.rays = footprint_offsets(n)
+        .into_iter()
+        .map(|o| {
+            let d = axes.offset(&dir, o);
+            let mut trails = [Trail::default()];
+            let paths = trace_chunk(&surface, &[Ray::new(eye, d)], &ps, Some(&mut trails)).unwrap();
+            assert_eq!(paths[0].end, PathEnd::Left);
+            (d, trails[0].prims().to_vec())
+        })
+        .collect();
+    c.view.pixel_axes = Some(axes);
+    c
+}
+
+#[test]
+fn footprint_gradient_matches_finite_differences() {
+    for seed in 0..3u64 {
+        for normals in [NormalModel::Face, NormalModel::Vertex] {
+            for (form, robust) in [
+                (ResidualForm::Screen, Robust::L2),
+                (ResidualForm::Screen, Robust::Cauchy(0.05)),
+                (ResidualForm::Direction, Robust::L2),
+            ] {
+                let mesh = slab(6, (0.8, 0.8), bumpy(0.15, seed), {
+                    let b = bumpy(0.15, seed + 100);
+                    move |x, y| -1.5 + b(x, y)
+                });
+                let s = settings(1.5, normals, form, robust);
+                let c = footprint_case(mesh, s, Point3::new(0.11, -0.07, 5.0), 2);
+                // The rays cross different triangles: a footprint, not four copies of a ray.
+                let distinct: std::collections::BTreeSet<_> =
+                    c.rays.iter().map(|(_, p)| p.clone()).collect();
+                assert!(
+                    distinct.len() > 1,
+                    "seed {seed}: the rays share their triangles"
+                );
+                fd_check(
+                    &c,
+                    1e-6,
+                    &format!("footprint seed {seed} {normals:?} {form:?}"),
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn a_symmetric_footprint_on_a_flat_slab_lands_where_its_centre_ray_does() {
+    // At normal incidence through parallel faces the four rays land symmetrically about the
+    // centre ray's point: the footprint's mean residual equals the centre ray's for any target,
+    // while each ray's own residual differs.
+    let mesh = slab(4, (1.0, 1.0), |_, _| 0.0, |_, _| -1.0);
+    let s = settings(1.5, NormalModel::Face, ResidualForm::Screen, Robust::L2);
+    let c = footprint_case(mesh, s, Point3::new(0.1, 0.2, 5.0), 2);
+    let centre = Case {
+        rays: vec![(-V3::z(), c.rays[0].1.clone())],
+        ..footprint_case(c.mesh.clone(), c.s, Point3::new(0.1, 0.2, 5.0), 1)
+    };
+    let (lf, lc) = (loss(&c, &c.mesh).unwrap(), loss(&centre, &c.mesh).unwrap());
+    assert!((lf - lc).abs() <= 1e-12 * lc.max(1e-300), "{lf} vs {lc}");
+    let one = Case {
+        rays: vec![c.rays[0].clone()],
+        ..footprint_case(c.mesh.clone(), c.s, Point3::new(0.1, 0.2, 5.0), 1)
+    };
+    assert!((loss(&one, &c.mesh).unwrap() - lc).abs() > 1e-6 * lc);
 }
 
 /// A flat slab (faces parallel), scaled by `scale`, crossed by a ray at incidence `incidence_deg`.
@@ -321,7 +416,7 @@ fn near_the_critical_angle_the_gradient_holds_and_beyond_it_the_ray_is_dropped()
     // Valid side, 1e-6 rad from the critical angle: steps small enough to stay there.
     let (mesh, s, eye, dir) = exit_case(critical - 1e-6, ior);
     let c = case(mesh, s, eye, dir, -3.0, 1);
-    assert_eq!(c.prims.len(), 1);
+    assert_eq!(c.rays[0].1.len(), 1);
     fd_check(&c, 1e-10, "1e-6 from critical");
     // Beyond it: not differentiable (TIR); the tracer ends the path and the gradient refuses it.
     let (mesh, s, eye, dir) = exit_case(critical + 1e-9, ior);
@@ -340,6 +435,7 @@ fn near_the_critical_angle_the_gradient_holds_and_beyond_it_the_ray_is_dropped()
         eye,
         monitor_point: Point3::new(0.0, 0.0, -3.0),
         monitor_normal: V3::z(),
+        pixel_axes: None,
         pixels: vec![],
     };
     let px = PixelTarget {
@@ -381,6 +477,7 @@ fn degenerate_triangles_drop_rays_and_never_reach_a_gradient() {
             eye: Point3::new(0.3, 0.2, 2.0),
             monitor_point: Point3::new(0.0, 0.0, -5.0),
             monitor_normal: V3::z(),
+            pixel_axes: None,
             pixels: vec![],
         };
         let px = PixelTarget {
@@ -556,10 +653,11 @@ fn silhouette_gradient_matches_finite_differences_and_drt_points_the_same_way() 
     );
 }
 
-#[test]
-fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
+/// Two views of `mesh` (an ellipsoid about 60 mm wide, 300 mm from a 160×120 camera) with exact
+/// correspondences: the simulator's own pixel-centre paths through `surface` (up to 4
+/// refractions) and where they meet the monitor.
+fn exact_views(surface: &MeshSurface) -> Vec<ViewTargets> {
     use glasscan::simulate::render::{camera_rays, trace_view, Outcome, ViewSetup};
-    let mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
     let cam = ring_camera(160, 120, 300.0, [0.0; 5]);
     let tt = Turntable {
         axis_point: Point3::new(0.0, 0.0, 300.0),
@@ -572,67 +670,74 @@ fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
         pitch_mm: 0.5,
         pose: nalgebra::Isometry3::translation(-200.0, -150.0, 500.0),
     };
+    tt.view_poses()
+        .unwrap()
+        .into_iter()
+        .enumerate()
+        .map(|(k, pose)| {
+            let setup = ViewSetup {
+                camera: &cam,
+                pose,
+                screen: &screen,
+                surface: Some(surface),
+                bound_centre: Point3::origin(),
+                bound_radius: 31.0,
+                settings: PathSettings::new(1.5, 4),
+                fresnel: false,
+            };
+            let samples = trace_view(&setup, &camera_rays(&setup, 1)).unwrap();
+            let to_world = pose.inverse();
+            let world_screen = screen.transformed(&to_world);
+            ViewTargets {
+                view: k,
+                eye: to_world * Point3::origin(),
+                monitor_point: world_screen.point(0.0, 0.0),
+                monitor_normal: world_screen.pose * V3::z(),
+                pixel_axes: None,
+                pixels: samples
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, s)| matches!(s.outcome, Outcome::Monitor(k) if k >= 2))
+                    .map(|(i, smp)| PixelTarget {
+                        dir: to_world * cam.pixel_ray((i % 160) as f64, (i / 160) as f64).unwrap(),
+                        target: world_screen.point(smp.monitor.x, smp.monitor.y),
+                        weight: 1.0,
+                    })
+                    .collect(),
+            }
+        })
+        .collect()
+}
+
+/// The refraction term of `views` on `surface`'s mesh: loss, rays used, drops and the gradient's
+/// norm.
+fn evaluate_views(
+    surface: &MeshSurface,
+    views: &[ViewTargets],
+    s: &RefractionSettings,
+) -> (f64, usize, glasscan::loss::Drops, f64) {
+    let vn = (s.normals == NormalModel::Vertex).then(|| surface.mesh().vertex_normals());
+    let mut acc = Accumulator::new(surface.mesh().positions.len(), vn.is_some());
+    for v in views {
+        add_view(surface, surface.mesh(), vn.as_deref(), s, v, &mut acc).unwrap();
+    }
+    let (loss, used, drops) = (acc.loss, acc.used, acc.drops);
+    let g = acc.finish(surface.mesh());
+    let gnorm = g.iter().map(|v| v.norm_squared()).sum::<f64>().sqrt();
+    (loss, used, drops, gnorm)
+}
+
+#[test]
+fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
+    let mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
     for normals in [NormalModel::Vertex, NormalModel::Face] {
         let mut surface = MeshSurface::with_mode(&mesh, normals, BuildMode::Refit).unwrap();
         let s = RefractionSettings {
             max_refractions: 4,
             ..settings(1.5, normals, ResidualForm::Screen, Robust::L2)
         };
-        // Exact correspondences: the simulator's own pixel-centre paths on the true mesh.
-        let views: Vec<ViewTargets> = tt
-            .view_poses()
-            .unwrap()
-            .into_iter()
-            .enumerate()
-            .map(|(k, pose)| {
-                let setup = ViewSetup {
-                    camera: &cam,
-                    pose,
-                    screen: &screen,
-                    surface: Some(&surface),
-                    bound_centre: Point3::origin(),
-                    bound_radius: 31.0,
-                    settings: PathSettings::new(1.5, 4),
-                    fresnel: false,
-                };
-                let samples = trace_view(&setup, &camera_rays(&setup, 1)).unwrap();
-                let to_world = pose.inverse();
-                let world_screen = screen.transformed(&to_world);
-                ViewTargets {
-                    view: k,
-                    eye: to_world * Point3::origin(),
-                    monitor_point: world_screen.point(0.0, 0.0),
-                    monitor_normal: world_screen.pose * V3::z(),
-                    pixels: samples
-                        .iter()
-                        .enumerate()
-                        .filter(|(_, s)| matches!(s.outcome, Outcome::Monitor(k) if k >= 2))
-                        .map(|(i, smp)| PixelTarget {
-                            dir: to_world
-                                * cam.pixel_ray((i % 160) as f64, (i / 160) as f64).unwrap(),
-                            target: world_screen.point(smp.monitor.x, smp.monitor.y),
-                            weight: 1.0,
-                        })
-                        .collect(),
-                }
-            })
-            .collect();
-        let evaluate = |surface: &MeshSurface| {
-            let vn = (normals == NormalModel::Vertex).then(|| surface.mesh().vertex_normals());
-            let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
-            for v in &views {
-                add_view(surface, surface.mesh(), vn.as_deref(), &s, v, &mut acc).unwrap();
-            }
-            let (loss, used, drops) = (acc.loss, acc.used, acc.drops);
-            let g = acc.finish(surface.mesh());
-            (
-                loss,
-                used,
-                drops,
-                g.iter().map(|v| v.norm_squared()).sum::<f64>().sqrt(),
-            )
-        };
-        let (loss, used, drops, gnorm) = evaluate(&surface);
+        let views = exact_views(&surface);
+        let (loss, used, drops, gnorm) = evaluate_views(&surface, &views, &s);
         assert!(used > 2000, "{normals:?}: {used} rays");
         assert_eq!(drops.non_finite, 0);
         let per_ray = loss / used as f64;
@@ -641,12 +746,49 @@ fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
         let mut grown = mesh.clone();
         grown.scale_translate(1.001, V3::zeros());
         surface.update_positions(&grown.positions).unwrap();
-        let (_, _, _, gnorm_grown) = evaluate(&surface);
+        let (_, _, _, gnorm_grown) = evaluate_views(&surface, &views, &s);
         assert!(
             gnorm < 1e-4 * gnorm_grown,
             "{normals:?}: |gradient| {gnorm:e} on the truth, {gnorm_grown:e} 0.1 % off"
         );
     }
+}
+
+#[test]
+fn a_robust_loss_leaves_ghost_points_without_pull_and_still_sees_a_wrong_shape() {
+    // Exact correspondences on the true shape with every fifth decoded point a "ghost": 30 mm
+    // away on the monitor, as where light that reflected inside the object lands. On the truth
+    // the other points fit exactly, so all the pull is the ghosts'.
+    let mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
+    let mut surface = MeshSurface::with_mode(&mesh, NormalModel::Vertex, BuildMode::Refit).unwrap();
+    let mut views = exact_views(&surface);
+    for v in &mut views {
+        let along = v.monitor_normal.cross(&V3::y()).normalize() * 30.0;
+        for p in v.pixels.iter_mut().step_by(5) {
+            p.target += along;
+        }
+    }
+    let term = |robust| RefractionSettings {
+        max_refractions: 4,
+        ..settings(1.5, NormalModel::Vertex, ResidualForm::Screen, robust)
+    };
+    let (l2, cauchy) = (term(Robust::L2), term(Robust::Cauchy(1.0)));
+    let (_, used, _, pull_l2) = evaluate_views(&surface, &views, &l2);
+    let (_, _, _, pull_cauchy) = evaluate_views(&surface, &views, &cauchy);
+    assert!(used > 2000);
+    assert!(
+        pull_cauchy < 0.01 * pull_l2,
+        "ghosts pull {pull_cauchy:e} under Cauchy, {pull_l2:e} under L2"
+    );
+    // The same ghosts with the mesh 0.5 % too large: the robust term's gradient is the misfit's.
+    let mut grown = mesh.clone();
+    grown.scale_translate(1.005, V3::zeros());
+    surface.update_positions(&grown.positions).unwrap();
+    let (_, _, _, misfit_cauchy) = evaluate_views(&surface, &views, &cauchy);
+    assert!(
+        misfit_cauchy > 10.0 * pull_cauchy,
+        "a 0.5 % misfit gives {misfit_cauchy:e} against the ghosts' {pull_cauchy:e}"
+    );
 }
 
 #[test]
@@ -668,6 +810,7 @@ fn gradients_are_bitwise_the_same_on_any_number_of_threads() {
         eye,
         monitor_point: to_world * Point3::new(0.0, 0.0, 500.0),
         monitor_normal: to_world * V3::z(),
+        pixel_axes: None,
         pixels: (0..200 * 150)
             .map(|i| PixelTarget {
                 dir: to_world * cam.pixel_ray((i % 200) as f64, (i / 200) as f64).unwrap(),
