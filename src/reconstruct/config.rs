@@ -101,11 +101,6 @@ pub struct Settings {
     /// of rays over its area (1: its centre ray; the cost grows as n²).
     #[serde(default = "one")]
     pub footprint: u32,
-    /// Stage edges are at least this many camera pixels long at the object (a pixel's width at
-    /// the object's distance; 0: no floor): finer triangles than the captures resolve are shaped
-    /// by noise.
-    #[serde(default)]
-    pub min_edge_px: f64,
     /// The robust penalty's scale in the first stage after the warm-up, as a multiple of
     /// `robust`'s; it shrinks geometrically to `robust`'s at the last stage (graduated
     /// non-convexity: far from the shape every residual is large, and a small scale would
@@ -210,7 +205,6 @@ impl Settings {
             validation_share: 0.1,
             min_cos: 0.0,
             footprint: 1,
-            min_edge_px: 0.0,
             robust_anneal: 1.0,
         };
         match preset {
@@ -346,9 +340,6 @@ impl Settings {
         }
         if !(self.robust_anneal >= 1.0 && self.robust_anneal <= 1e3) {
             return bad("robust_anneal", "must lie in [1, 1000]");
-        }
-        if !(self.min_edge_px >= 0.0 && self.min_edge_px <= 1e3) {
-            return bad("min_edge_px", "must lie in [0, 1000] pixels");
         }
         if !(1..=4).contains(&self.footprint) {
             return bad("footprint", "rays per pixel side must lie in 1..=4");

@@ -16,7 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use nalgebra::{Point3, Vector3};
+use nalgebra::Vector3;
 use rand::seq::index::sample;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -49,17 +49,6 @@ pub struct Inputs {
     pub ior: f64,
     pub targets: Vec<ViewTargets>,
     pub silhouettes: Vec<Silhouette>,
-}
-
-impl Inputs {
-    /// The width of a camera pixel at `point`'s distance (mm, world frame), the mean over the
-    /// views; 0 without views or camera axes.
-    pub fn pixel_mm(&self, point: &Point3<f64>) -> f64 {
-        let widths: Vec<f64> = (self.targets.iter())
-            .filter_map(|v| Some(v.pixel_axes?.right.norm() * (point - v.eye).norm()))
-            .collect();
-        widths.iter().sum::<f64>() / widths.len().max(1) as f64
-    }
 }
 
 /// The weighted means of the terms at one iteration (before its step).
@@ -234,12 +223,7 @@ fn run_next_stage(
     let s = ck.stages_done;
     let t0 = Instant::now();
     let (phase, k) = ck.settings.stage(s);
-    let centre = mesh
-        .bbox()
-        .map_or(Point3::origin(), |(lo, hi)| nalgebra::center(&lo, &hi));
-    let edge_mm = phase
-        .edge_mm(k, ck.diagonal_mm)
-        .max(phase.min_edge_px * inputs.pixel_mm(&centre));
+    let edge_mm = phase.edge_mm(k, ck.diagonal_mm);
     let opts = RemeshOptions {
         iterations: phase.remesh_iterations,
         ..RemeshOptions::uniform(edge_mm)
@@ -545,42 +529,4 @@ pub fn load_inputs(
         },
         warnings,
     ))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::loss::refraction::PixelAxes;
-
-    #[test]
-    fn a_pixel_at_the_object_is_its_angular_width_times_the_distance() {
-        let view = |eye: Point3<f64>, fx: f64| ViewTargets {
-            view: 0,
-            eye,
-            monitor_point: Point3::origin(),
-            monitor_normal: Vector3::z(),
-            pixel_axes: Some(PixelAxes {
-                right: Vector3::x() / fx,
-                down: Vector3::y() / fx,
-                forward: Vector3::z(),
-            }),
-            pixels: Vec::new(),
-        };
-        let inputs = Inputs {
-            ior: 1.5,
-            targets: vec![
-                view(Point3::new(0.0, 0.0, -500.0), 1000.0),
-                view(Point3::new(300.0, 0.0, 400.0), 2000.0),
-            ],
-            silhouettes: Vec::new(),
-        };
-        // 500 mm at 1000 px per unit depth and 500 mm at 2000: 0.5 and 0.25 mm.
-        let w = inputs.pixel_mm(&Point3::origin());
-        assert!((w - 0.375).abs() < 1e-12, "{w}");
-        let none = Inputs {
-            targets: Vec::new(),
-            ..inputs
-        };
-        assert_eq!(none.pixel_mm(&Point3::origin()), 0.0);
-    }
 }
