@@ -7,7 +7,7 @@ use clap::{Args, Subcommand};
 
 use crate::bench::reconstruct::ScanKind;
 use crate::bench::trace::{self, TraceBenchOptions, TraceBenchReport};
-use crate::loss::refraction::ResidualForm;
+use crate::loss::refraction::{ResidualForm, MAX_FOOTPRINT};
 use crate::loss::Robust;
 use crate::mesh::io::read_mesh;
 use crate::mesh::shapes;
@@ -106,7 +106,8 @@ pub struct GradientArgs {
     #[arg(long, default_value = "l2", value_parser = super::common::parse_robust)]
     pub robust: Robust,
     /// Rays per pixel side (a pixel modelled by the mean of an n×n grid of rays), 1..=4.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=4))]
+    #[arg(long, default_value_t = 1,
+          value_parser = clap::value_parser!(u32).range(1..=MAX_FOOTPRINT as i64))]
     pub footprint: u32,
     /// Timed evaluations (the median is reported).
     #[arg(long, default_value_t = 3)]

@@ -99,7 +99,6 @@ pub fn share(s: &str) -> Result<f64, String> {
     }
 }
 
-/// A share in (0, 1].
 /// A robust loss: `l2`, `huber:δ` or `cauchy:δ` with δ > 0.
 pub fn parse_robust(s: &str) -> Result<Robust, String> {
     let scale = |d: &str| match d.parse::<f64>() {
@@ -114,6 +113,7 @@ pub fn parse_robust(s: &str) -> Result<Robust, String> {
     }
 }
 
+/// A share in (0, 1].
 pub fn positive_share(s: &str) -> Result<f64, String> {
     let v = finite(s)?;
     if v > 0.0 && v <= 1.0 {

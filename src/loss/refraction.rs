@@ -55,18 +55,15 @@ pub struct RefractionSettings {
     /// thousands); 0 keeps every ray with a usable derivative.
     #[serde(default)]
     pub min_cos: f64,
-    /// Rays per pixel side: each pixel is modelled by the mean of an n×n grid of rays over its
-    /// area (1: the centre ray).
-    #[serde(default = "one")]
+    /// Rays per pixel side, 1..=[`MAX_FOOTPRINT`]: each pixel is modelled by the mean of an n×n
+    /// grid of rays over its area (1: the centre ray).
     pub footprint: u32,
 }
 
-fn one() -> u32 {
-    1
-}
-
+/// The most rays per pixel side of a footprint.
+pub const MAX_FOOTPRINT: u32 = 4;
 /// The most rays of a pixel's footprint.
-pub const MAX_FOOTPRINT_RAYS: usize = 16;
+const MAX_FOOTPRINT_RAYS: usize = (MAX_FOOTPRINT * MAX_FOOTPRINT) as usize;
 
 /// Offsets (px) of an n×n footprint's rays from the pixel centre: the centres of an n×n grid
 /// over the pixel.
@@ -459,7 +456,7 @@ pub fn add_view(
         vertex_normals,
     };
     let offsets = match view.pixel_axes {
-        Some(_) => footprint_offsets(s.footprint.clamp(1, 4)),
+        Some(_) => footprint_offsets(s.footprint.clamp(1, MAX_FOOTPRINT)),
         None => vec![(0.0, 0.0)],
     };
     // Trace and differentiate chunk by chunk, each on one thread, so the chunk's paths stay in

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::loss::refraction::ResidualForm;
+use crate::loss::refraction::{ResidualForm, MAX_FOOTPRINT};
 use crate::loss::silhouette::SilhouetteForm;
 use crate::loss::smoothness::Smoothness;
 use crate::loss::targets::TargetWeights;
@@ -341,8 +341,11 @@ impl Settings {
         if !(self.robust_anneal >= 1.0 && self.robust_anneal <= 1e3) {
             return bad("robust_anneal", "must lie in [1, 1000]");
         }
-        if !(1..=4).contains(&self.footprint) {
-            return bad("footprint", "rays per pixel side must lie in 1..=4");
+        if !(1..=MAX_FOOTPRINT).contains(&self.footprint) {
+            return bad(
+                "footprint",
+                &format!("rays per pixel side must lie in 1..={MAX_FOOTPRINT}"),
+            );
         }
         match self.robust {
             Robust::Huber(d) | Robust::Cauchy(d) if !(d > 0.0 && d.is_finite()) => {
