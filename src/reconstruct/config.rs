@@ -53,12 +53,21 @@ pub enum Optimizer {
     /// cached sparse Cholesky solve, Adam with one second moment for all vertices (their
     /// root-mean-square here, with each step clamped to 3 learning rates, where the paper takes
     /// the maximum: outlying ray gradients would otherwise freeze every other vertex); the
-    /// learning rate is `lr_edge` edge lengths of the stage.
+    /// learning rate is `lr_edge` edge lengths of the stage. With `clip` > 0 each vertex's
+    /// gradient ∂E/∂x is first cut to at most `clip` times the 99th percentile of the non-zero
+    /// lengths, so that a few vertices cannot fill the shared second moment (0: no cut). The
+    /// learning rate falls geometrically over each stage's iterations to `lr_end_share` of itself
+    /// (1: constant), so that a stage ends near its minimum rather than at the noise of its
+    /// sampled views.
     LargeSteps {
         lambda: f64,
         lr_edge: f64,
         beta1: f64,
         beta2: f64,
+        #[serde(default)]
+        clip: f64,
+        #[serde(default = "one_f64")]
+        lr_end_share: f64,
     },
 }
 
@@ -154,7 +163,19 @@ fn check_optimizer(o: &Optimizer) -> Result<(), String> {
             lr_edge,
             beta1,
             beta2,
+            clip,
+            lr_end_share,
         } => {
+            if !(clip.is_finite() && clip >= 0.0) {
+                return Err(
+                    "setting optimizer.large_steps: clip must be 0 (off) or positive".into(),
+                );
+            }
+            if !(lr_end_share > 0.0 && lr_end_share <= 1.0) {
+                return Err(
+                    "setting optimizer.large_steps: lr_end_share must lie in (0, 1]".into(),
+                );
+            }
             if !(positive(lambda) && positive(lr_edge)) {
                 return Err(
                     "setting optimizer.large_steps: lambda and lr_edge must be positive".into(),
@@ -178,6 +199,8 @@ impl Settings {
             lr_edge: 0.3,
             beta1: 0.9,
             beta2: 0.999,
+            clip: 10.0,
+            lr_end_share: 0.1,
         };
         let base = Settings {
             preset,

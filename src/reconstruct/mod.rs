@@ -265,7 +265,13 @@ fn run_stage(
 ) -> Result<StageReport> {
     let mut surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Refit)?;
     let edges = mesh.interior_edges();
-    let mut stepper = Stepper::new(&settings.optimizer, mesh, k, settings.stages, edge_mm)?;
+    let mut stepper = Stepper::new(
+        &settings.optimizer,
+        mesh,
+        (k, settings.stages),
+        edge_mm,
+        settings.iterations,
+    )?;
     let (mut used, mut drops, mut contour) = (0, Drops::default(), 0);
     let mut last = IterationRecord::default();
     for it in 0..settings.iterations {

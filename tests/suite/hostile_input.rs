@@ -246,6 +246,14 @@ fn config_values_are_range_checked() {
             "beta1 and beta2",
         ),
         (
+            "optimizer = { large_steps = { lambda = 20.0, lr_edge = 0.3, beta1 = 0.9, beta2 = 0.999, clip = -1.0 } }",
+            "clip must be 0 (off) or positive",
+        ),
+        (
+            "optimizer = { large_steps = { lambda = 20.0, lr_edge = 0.3, beta1 = 0.9, beta2 = 0.999, lr_end_share = 0.0 } }",
+            "lr_end_share must lie in (0, 1]",
+        ),
+        (
             "optimizer = { sgd = { lr_start = -0.1, lr_end = 0.05, momentum = 0.9 } }",
             "lr_start and lr_end",
         ),
