@@ -200,7 +200,7 @@ impl Settings {
             beta1: 0.9,
             beta2: 0.999,
             clip: 10.0,
-            lr_end_share: 0.1,
+            lr_end_share: 1.0,
         };
         let base = Settings {
             preset,

@@ -334,7 +334,5 @@ fn refraction_carries_the_shape_beyond_the_hull() {
 }
 
 /// A short schedule for the pebble test (no warm-up: its DRT weights would not follow the
-/// refraction weight under test; a constant learning rate: 60 iterations from the hull are too
-/// few for one falling to a tenth).
-const PEBBLE_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.06\nfinal_edge = 0.04\niterations = 60\nrefraction_views = 4\n\
-    optimizer = { large_steps = { lambda = 20.0, lr_edge = 0.3, beta1 = 0.9, beta2 = 0.999, clip = 10.0, lr_end_share = 1.0 } }\n";
+/// refraction weight under test).
+const PEBBLE_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.06\nfinal_edge = 0.04\niterations = 60\nrefraction_views = 4\n";
