@@ -51,14 +51,14 @@ pub enum Optimizer {
     },
     /// Nicolet et al. 2021: u = (I + λL)x with the uniform Laplacian L, the gradient mapped by a
     /// cached sparse Cholesky solve, Adam with one second moment for all vertices (their
-    /// root-mean-square here, with each step clamped to 3 learning rates, where the paper takes
-    /// the maximum: outlying ray gradients would otherwise freeze every other vertex); the
-    /// learning rate is `lr_edge` edge lengths of the stage. With `clip` > 0 each vertex's
-    /// gradient ∂E/∂x is first cut to at most `clip` times the 99th percentile of the non-zero
-    /// lengths, so that a few vertices cannot fill the shared second moment (0: no cut). The
+    /// root-mean-square here, where the paper takes the maximum; each step clamped to 3 learning
+    /// rates); the learning rate is `lr_edge` edge lengths of the stage. With `clip` > 0 each
+    /// vertex's gradient ∂E/∂x is first cut to at most `clip` times the 99th percentile of the
+    /// non-zero lengths, so that one outlying ray cannot fill the shared second moment and freeze
+    /// every other vertex (0, also when a config omits it: no cut). The
     /// learning rate falls geometrically over each stage's iterations to `lr_end_share` of itself
-    /// (1: constant), so that a stage ends near its minimum rather than at the noise of its
-    /// sampled views.
+    /// (1, also when omitted: constant), so that a stage ends near its minimum rather than at the
+    /// noise of its sampled views.
     LargeSteps {
         lambda: f64,
         lr_edge: f64,

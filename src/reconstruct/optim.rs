@@ -187,21 +187,19 @@ const CLIP_QUANTILE: f64 = 0.99;
 /// `grad` with every vector longer than `clip` × the 99th percentile of the non-zero lengths cut
 /// to that length (unchanged when `clip` is 0 or all are zero).
 fn clipped(grad: &[V3], clip: f64) -> Vec<V3> {
-    let mut lengths: Vec<f64> = grad.iter().map(|g| g.norm()).filter(|&l| l > 0.0).collect();
-    if clip <= 0.0 || lengths.is_empty() {
+    if clip <= 0.0 {
         return grad.to_vec();
     }
-    let k = ((lengths.len() - 1) as f64 * CLIP_QUANTILE).round() as usize;
-    let bound = clip * *lengths.select_nth_unstable_by(k, f64::total_cmp).1;
+    let lengths: Vec<f64> = grad.iter().map(|g| g.norm()).collect();
+    let mut nonzero: Vec<f64> = lengths.iter().copied().filter(|&l| l > 0.0).collect();
+    if nonzero.is_empty() {
+        return grad.to_vec();
+    }
+    let k = ((nonzero.len() - 1) as f64 * CLIP_QUANTILE).round() as usize;
+    let bound = clip * *nonzero.select_nth_unstable_by(k, f64::total_cmp).1;
     grad.iter()
-        .map(|g| {
-            let l = g.norm();
-            if l > bound {
-                g * (bound / l)
-            } else {
-                *g
-            }
-        })
+        .zip(&lengths)
+        .map(|(g, &l)| if l > bound { g * (bound / l) } else { *g })
         .collect()
 }
 
