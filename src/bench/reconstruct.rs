@@ -43,6 +43,10 @@ pub enum ScanKind {
     /// As `noisy`, with the physical light transport (Fresnel reflections, internal reflections
     /// and their ghosts).
     Physical,
+    /// A diagnostic: the `physical` scan decoded, then every view's decoded silhouette replaced
+    /// by the simulator's true one (the pixels whose centre ray meets the object). Against
+    /// `physical` it measures how much of the error the decoded silhouettes cause.
+    PhysicalTrueMasks,
 }
 
 impl ScanKind {
@@ -52,6 +56,7 @@ impl ScanKind {
             ScanKind::Exact => "exact",
             ScanKind::Noisy => "noisy",
             ScanKind::Physical => "physical",
+            ScanKind::PhysicalTrueMasks => "physical-true-masks",
         }
     }
 
@@ -67,10 +72,9 @@ impl ScanKind {
             spp: if noisy { 4 } else { 1 },
             noise: if noisy { 2.0 } else { 0.0 },
             blur_px: if noisy { 0.7 } else { 0.0 },
-            transport: if self == ScanKind::Physical {
-                Transport::Physical
-            } else {
-                Transport::Simple
+            transport: match self {
+                ScanKind::Physical | ScanKind::PhysicalTrueMasks => Transport::Physical,
+                ScanKind::Exact | ScanKind::Noisy => Transport::Simple,
             },
             // The bench's own work folder: a scan left half made (decode interrupted) is replaced.
             force: true,
@@ -269,7 +273,10 @@ impl Case<'_> {
     }
 }
 
-/// Simulates (and for `noisy`, decodes) the scan unless `dir` already holds it.
+/// Marks a `physical-true-masks` scan whose silhouettes have all been replaced.
+const TRUE_MASKS_MARK: &str = "true_masks_done";
+
+/// Simulates (and unless `exact`, decodes) the scan unless `dir` already holds it.
 fn ensure_scan(
     object: &ObjectMesh,
     dir: &Path,
@@ -277,7 +284,11 @@ fn ensure_scan(
     rig: &Rig,
     log: &dyn Fn(&str),
 ) -> Result<()> {
-    if dir.join("decoded").join("summary.json").is_file() {
+    let done = match kind {
+        ScanKind::PhysicalTrueMasks => dir.join("decoded").join(TRUE_MASKS_MARK),
+        _ => dir.join("decoded").join("summary.json"),
+    };
+    if done.is_file() {
         return Ok(());
     }
     let mesh = object.read()?;
@@ -293,8 +304,33 @@ fn ensure_scan(
         let views: Vec<usize> = (0..SCAN_VIEWS).collect();
         decode_scan(&scan, &views, &DecodeOptions::default(), |_| ())?;
     }
+    if kind == ScanKind::PhysicalTrueMasks {
+        use_true_masks(dir)?;
+    }
     log(&format!("  {:.1} s", t0.elapsed().as_secs_f64()));
     Ok(())
+}
+
+/// Replaces every decoded silhouette of the simulated scan in `dir` by the simulator's true one
+/// (views decode left out stay out), then marks the scan done.
+fn use_true_masks(dir: &Path) -> Result<()> {
+    let (decoded, truth) = (dir.join("decoded"), dir.join("truth"));
+    for k in 0..SCAN_VIEWS {
+        let name = format!("view_{k:03}_mask.png");
+        if decoded.join(&name).is_file() {
+            let bytes = std::fs::read(truth.join(&name))
+                .with_context(|| format!("cannot read {}", truth.join(&name).display()))?;
+            let path = decoded.join(&name);
+            crate::util::atomic::write_atomic(&path, |w| w.write_all(&bytes))
+                .with_context(|| format!("cannot write {}", path.display()))?;
+        }
+    }
+    let mark = decoded.join(TRUE_MASKS_MARK);
+    std::fs::write(
+        &mark,
+        "decoded silhouettes replaced by the simulator's true ones\n",
+    )
+    .with_context(|| format!("cannot write {}", mark.display()))
 }
 
 /// `n` views spread evenly over the scan's.

@@ -100,9 +100,12 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
             .map(|s| compare_view(&scan.dir, s.view, &fixed))
             .collect::<Result<_>>()?;
         outln!(
-            "{:>5} {:>8} {:>9} {:>9} {:>12} {:>12} {:>9} {:>11}",
+            "{:>5} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>12} {:>9} {:>11}",
             "view",
             "mask IoU",
+            "extra",
+            "missing",
+            "edge px",
             "valid",
             "decoded %",
             "med err foot",
@@ -112,9 +115,12 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         );
         for c in &rows {
             outln!(
-                "{:>5} {:>8.4} {:>9} {:>9.1} {:>12.2} {:>12.2} {:>9.1} {:>11.1}",
+                "{:>5} {:>8.4} {:>9} {:>9} {:>9.3} {:>9} {:>9.1} {:>12.2} {:>12.2} {:>9.1} {:>11.1}",
                 c.view,
                 c.mask_iou,
+                c.mask_extra,
+                c.mask_missing,
+                c.edge_offset_px(),
                 c.valid,
                 100.0 * c.decoded_share,
                 c.median_error_footprint_px,
@@ -129,8 +135,10 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
             rows.iter().map(|c| f(c) * c.compared as f64).sum::<f64>() / n.max(1) as f64
         };
         outln!(
-            "overall: mean mask IoU {:.4}; {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
+            "overall: mean mask IoU {:.4}; decoded outline {:+.3} px from the true one (> 0: outside); {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
             rows.iter().map(|c| c.mask_iou).sum::<f64>() / rows.len().max(1) as f64,
+            (rows.iter().map(|c| c.mask_extra as f64 - c.mask_missing as f64).sum::<f64>())
+                / rows.iter().map(|c| c.outline).sum::<usize>().max(1) as f64,
             100.0 * n as f64 / valid.max(1) as f64,
             100.0 * w(|c| c.within_1px_footprint),
             100.0 * w(|c| c.within_uncertainty_footprint),

@@ -25,6 +25,19 @@ pub struct Comparison {
     pub median_error_centre_px: f64,
     pub within_1px_footprint: f64,
     pub within_uncertainty_footprint: f64,
+    /// Pixels the decoded silhouette has and the true one lacks, and the reverse.
+    pub mask_extra: usize,
+    pub mask_missing: usize,
+    /// Pixels of the true silhouette with a 4-neighbour outside it (its outline's length, px).
+    pub outline: usize,
+}
+
+impl Comparison {
+    /// Mean signed offset of the decoded outline from the true one, camera pixels (> 0: the
+    /// decoded silhouette is larger): (extra − missing) / outline length.
+    pub fn edge_offset_px(&self) -> f64 {
+        (self.mask_extra as f64 - self.mask_missing as f64) / self.outline.max(1) as f64
+    }
 }
 
 fn load(path: &Path) -> Result<Mat> {
@@ -56,6 +69,7 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
     );
     let unfix = |x: u16| fixed.decode(x).unwrap_or(f64::NAN);
     let (mut inter, mut union, mut valid) = (0usize, 0usize, 0usize);
+    let (mut extra, mut missing) = (0usize, 0usize);
     let (mut e_foot, mut e_centre, mut within1, mut within_u) =
         (Vec::new(), Vec::new(), 0usize, 0usize);
     for y in 0..m.rows() {
@@ -63,6 +77,8 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
             let (a, b) = (*m.at_2d::<u8>(y, x)? == 255, *tm.at_2d::<u8>(y, x)? == 255);
             inter += (a && b) as usize;
             union += (a || b) as usize;
+            extra += (a && !b) as usize;
+            missing += (!a && b) as usize;
             let d = *mon.at_2d::<Vec4w>(y, x)?;
             let (f, c) = (*foot.at_2d::<Vec4w>(y, x)?, *centre.at_2d::<Vec3w>(y, x)?);
             let truth_valid = a && b && c[0] != NONE;
@@ -91,5 +107,55 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
         median_error_centre_px: median(e_centre),
         within_1px_footprint: within1 as f64 / n.max(1) as f64,
         within_uncertainty_footprint: within_u as f64 / n.max(1) as f64,
+        mask_extra: extra,
+        mask_missing: missing,
+        outline: outline_length(&tm)?,
     })
+}
+
+/// Pixels of the mask `m` (255 inside) with a 4-neighbour outside it or on the image border.
+fn outline_length(m: &Mat) -> Result<usize> {
+    let (h, w) = (m.rows(), m.cols());
+    let inside = |y: i32, x: i32| -> Result<bool> {
+        Ok(y >= 0 && x >= 0 && y < h && x < w && *m.at_2d::<u8>(y, x)? == 255)
+    };
+    let mut n = 0;
+    for y in 0..h {
+        for x in 0..w {
+            if inside(y, x)? {
+                let all = inside(y - 1, x)?
+                    && inside(y + 1, x)?
+                    && inside(y, x - 1)?
+                    && inside(y, x + 1)?;
+                n += !all as usize;
+            }
+        }
+    }
+    Ok(n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn outline_of_a_square_is_its_border_ring() {
+        let mut data = vec![0u8; 20 * 30];
+        for y in 5..15 {
+            for x in 10..20 {
+                data[y * 30 + x] = 255;
+            }
+        }
+        let m = Mat::new_rows_cols_with_data(20, 30, &data)
+            .unwrap()
+            .clone_pointee();
+        assert_eq!(outline_length(&m).unwrap(), 36);
+        // A mask one pixel larger all round: (12² − 10²) extra pixels over the 36-pixel outline.
+        let c = Comparison {
+            mask_extra: 44,
+            outline: 36,
+            ..Default::default()
+        };
+        assert!((c.edge_offset_px() - 44.0 / 36.0).abs() < 1e-12);
+    }
 }

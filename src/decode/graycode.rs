@@ -51,6 +51,15 @@ pub struct BitTest {
     pub min_contrast: f32,
 }
 
+impl BitTest {
+    /// The smallest pattern–inverse difference of a reliable bit at a pixel with these white
+    /// and black levels, grey levels.
+    pub fn need(&self, white: u8, black: u8) -> f32 {
+        let range = (white as f32 - black as f32).max(0.0);
+        (self.white_threshold as f32).max(self.min_contrast * range)
+    }
+}
+
 /// Decodes every pixel of a view from its pattern images (`code.pattern_count()` 8-bit images of
 /// one size, pixels in the same order, images in OpenCV's order) and its white and black images.
 pub fn decode_view(
@@ -67,8 +76,7 @@ pub fn decode_view(
     (0..n)
         .into_par_iter()
         .map(|p| {
-            let range = (white[p] as f32 - black[p] as f32).max(0.0);
-            let need = (test.white_threshold as f32).max(test.min_contrast * range);
+            let need = test.need(white[p], black[p]);
             let axis = |first: usize, bits: usize| {
                 let mut gray = 0u32;
                 let mut kept = 0usize;

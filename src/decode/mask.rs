@@ -15,7 +15,9 @@
 //!
 //! Then the edge is made sub-pixel honest ([`trim_mixed_edge`]): an undecoded edge pixel (a
 //! mixture of what the object and the background show) is object only if it is more than half
-//! covered, judged from its white ratio. Last, connected object regions smaller than
+//! covered, judged from how much of the background's fine code it still shows
+//! ([`super::coherence`]), or from its white ratio where the background has no reliable fine
+//! bits there. Last, connected object regions smaller than
 //! `min_component_px` are dropped and holes smaller than `max_hole_px` filled.
 //!
 //! Without a captured background, the background point is predicted from the calibrated screen
@@ -125,18 +127,34 @@ fn ratio_noise(ev: &[Evidence]) -> f32 {
     1.4826 * *dev.select_nth_unstable_by(mid, f32::total_cmp).1
 }
 
-/// The raw silhouette of a `width`-wide view (rules 1–3 and the edge trim, before clean-up): 255
-/// for object pixels. Returns the mask and the white-drop threshold used (`None` without a
-/// captured background). `ior`: the object's refractive index (for [`auto_white_drop`]).
+/// What a view's captures show per pixel (row-major), for its silhouette.
+pub struct ViewPixels<'a> {
+    pub width: usize,
+    pub decoded: &'a [PixelDecode],
+    /// OpenCV's shadow test passed (white − black above the black threshold).
+    pub lit: &'a [bool],
+    pub white: &'a [u8],
+    /// The share of the background's fine code each pixel shows
+    /// ([`super::coherence::background_share`]), with a captured background.
+    pub background_share: Option<&'a [f32]>,
+}
+
+/// The raw silhouette of a view (rules 1–3 and the edge trim, before clean-up): 255 for object
+/// pixels. Returns the mask and the white-drop threshold used (`None` without a captured
+/// background). `ior`: the object's refractive index (for [`auto_white_drop`]).
 pub fn raw_mask(
-    decoded: &[PixelDecode],
-    lit: &[bool],
-    white: &[u8],
+    view: &ViewPixels,
     background: &[BackgroundPixel],
-    width: usize,
     ior: f64,
     o: &MaskOptions,
 ) -> (Vec<u8>, Option<f32>) {
+    let ViewPixels {
+        width,
+        decoded,
+        lit,
+        white,
+        background_share,
+    } = *view;
     let ev: Vec<Evidence> = decoded
         .iter()
         .zip(lit)
@@ -161,7 +179,7 @@ pub fn raw_mask(
         })
         .collect();
     if captured {
-        trim_mixed_edge(&mut mask, &ev, width);
+        trim_mixed_edge(&mut mask, &ev, width, background_share);
     }
     (mask, drop)
 }
@@ -176,11 +194,20 @@ const TRIM_PASSES: usize = 2;
 
 /// Removes edge pixels that are less than half object. An object pixel with a background
 /// 4-neighbour that is object only by rules 2 or 3 (it decodes to nothing, or to the background's
-/// point but darker) mixes the object's light and the background's; with coverage c its white
-/// ratio is about c·r_in + (1 − c), where r_in is the object's own (the smallest ratio among the
-/// object pixels within two pixels). Its centre lies outside the object (c < ½) when the ratio
-/// exceeds (1 + r_in)/2. Pixels whose decoded point moved (rule 1) are never trimmed.
-fn trim_mixed_edge(mask: &mut [u8], ev: &[Evidence], width: usize) {
+/// point but darker) mixes the object's light and the background's. Its centre lies outside the
+/// object (coverage c < ½) when it shows more than half of the background's fine code
+/// (`background_share`, see [`super::coherence`]). Where that share is unknown, the white ratio
+/// decides: it is about c·r_in + (1 − c), r_in the object's own (the smallest ratio among the
+/// object pixels within two pixels), so c < ½ when the ratio exceeds (1 + r_in)/2 — a rule that
+/// trims too much where the glass near the outline is brighter than r_in (light reflected at
+/// grazing incidence: docs/decisions.md). Pixels whose decoded point moved (rule 1) are never
+/// trimmed.
+fn trim_mixed_edge(
+    mask: &mut [u8],
+    ev: &[Evidence],
+    width: usize,
+    background_share: Option<&[f32]>,
+) {
     let height = mask.len() / width;
     for _ in 0..TRIM_PASSES {
         let is_edge = |m: &[u8], i: usize| {
@@ -208,6 +235,9 @@ fn trim_mixed_edge(mask: &mut [u8], ev: &[Evidence], width: usize) {
         let trim: Vec<usize> = (0..mask.len())
             .filter(|&i| mask[i] == 255 && !clearly_bent(&ev[i]) && is_edge(mask, i))
             .filter(|&i| {
+                if let Some(share) = background_share.map(|s| s[i]).filter(|s| !s.is_nan()) {
+                    return share > 0.5;
+                }
                 let (Some(r), Some(r_in)) = (ev[i].ratio, inner_ratio(mask, i)) else {
                     return false;
                 };

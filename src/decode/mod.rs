@@ -2,6 +2,7 @@
 //! it sees, with the uncertainty its reliable bits leave. The decoded form is documented in the
 //! README (`decoded/` of the scan folder).
 
+pub mod coherence;
 pub mod compare;
 pub mod graycode;
 pub mod mask;
@@ -19,8 +20,9 @@ use crate::scan::Scan;
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
+use coherence::{background_share, fine_bits, FineDiffs};
 use graycode::{decode_view, BitTest, PixelDecode};
-use mask::{clean, raw_mask, BackgroundPixel, MaskOptions};
+use mask::{clean, raw_mask, BackgroundPixel, MaskOptions, ViewPixels};
 
 /// Thresholds of decoding.
 #[derive(Clone, Copy, Debug)]
@@ -59,6 +61,10 @@ pub struct DecodedCapture {
     pub pixels: Vec<PixelDecode>,
     pub lit: Vec<bool>,
     pub white: Vec<u8>,
+    /// Per pixel the smallest difference of a reliable bit ([`BitTest::need`]), grey levels.
+    pub need: Vec<f32>,
+    /// The fine bits' pattern − inverse differences (the mask's edge rule).
+    pub fine: FineDiffs,
 }
 
 /// Reads and decodes the captures in `dir` (with the phase-shift images if `phase` is given);
@@ -109,6 +115,12 @@ pub fn decode_captures(
         min_contrast: o.min_contrast,
     };
     let mut pixels = decode_view(&data[..n], white, black, code, test);
+    let need = white
+        .iter()
+        .zip(black)
+        .map(|(&w, &b)| test.need(w, b))
+        .collect();
+    let fine = FineDiffs::new(&data[..n], &fine_bits(code));
     if let Some(p) = phase {
         phase::refine(&mut pixels, &data[n + 2..], p, o.min_modulation);
     }
@@ -123,6 +135,8 @@ pub fn decode_captures(
         pixels,
         lit,
         white: white.to_vec(),
+        need,
+        fine,
     })
 }
 
@@ -143,11 +157,12 @@ pub fn decode_scan(
     let out = staged.path().to_path_buf();
     std::fs::create_dir_all(out.join("preview"))
         .with_context(|| format!("cannot create {}", out.display()))?;
-    let background = background_reference(scan, &code, phase, size, o)?;
+    let (background, background_capture) = background_reference(scan, &code, phase, size, o)?;
     let fixed = FixedPoint::for_screen(code.width, code.height);
     let writer = ViewWriter {
         out: &out,
         background: &background,
+        background_capture: background_capture.as_ref(),
         code: &code,
         ior: scan.config.ior,
         o,
@@ -191,19 +206,19 @@ fn view_problem(cap: &DecodedCapture) -> Option<String> {
     None
 }
 
-/// The background per pixel: decoded from `captures/background` if present, else predicted from
-/// the screen pose.
+/// The background per pixel: decoded from `captures/background` if present (returned too), else
+/// predicted from the screen pose.
 fn background_reference(
     scan: &Scan,
     code: &GrayCode,
     phase: Option<&PhaseShift>,
     size: (u32, u32),
     o: &DecodeOptions,
-) -> Result<Vec<BackgroundPixel>> {
+) -> Result<(Vec<BackgroundPixel>, Option<DecodedCapture>)> {
     let dir = scan.background_dir();
     if dir.is_dir() {
         let cap = decode_captures(&dir, code, phase, size, o)?;
-        return Ok(cap
+        let pixels = cap
             .pixels
             .iter()
             .zip(&cap.lit)
@@ -217,10 +232,11 @@ fn background_reference(
                 )),
                 white: Some(w),
             })
-            .collect());
+            .collect();
+        return Ok((pixels, Some(cap)));
     }
     let (w, h) = size;
-    Ok((0..h * w)
+    let pixels = (0..h * w)
         .map(|p| {
             let point = scan
                 .camera
@@ -229,7 +245,8 @@ fn background_reference(
                 .map(|(_, px)| (px.x as f32, px.y as f32, 1.0, 1.0));
             BackgroundPixel { point, white: None }
         })
-        .collect())
+        .collect();
+    Ok((pixels, None))
 }
 
 /// What every view's outputs depend on besides its captures.
@@ -237,6 +254,8 @@ struct ViewWriter<'a> {
     /// The `decoded/` folder.
     out: &'a Path,
     background: &'a [BackgroundPixel],
+    /// The background's captures, decoded, where they were taken.
+    background_capture: Option<&'a DecodedCapture>,
     code: &'a GrayCode,
     /// The object's refractive index (for the mask's white-drop rule).
     ior: f64,
@@ -250,21 +269,22 @@ impl ViewWriter<'_> {
         let ViewWriter {
             out,
             background: bg,
+            background_capture,
             code,
             ior,
             o,
             fixed,
         } = *self;
+        let share = background_capture.map(|b| background_share(&cap.fine, &b.fine, &b.need));
         let (w, h) = (cap.width as i32, cap.height as i32);
-        let (mut mask, white_drop) = raw_mask(
-            &cap.pixels,
-            &cap.lit,
-            &cap.white,
-            bg,
-            cap.width,
-            ior,
-            &o.mask,
-        );
+        let view = ViewPixels {
+            width: cap.width,
+            decoded: &cap.pixels,
+            lit: &cap.lit,
+            white: &cap.white,
+            background_share: share.as_deref(),
+        };
+        let (mut mask, white_drop) = raw_mask(&view, bg, ior, &o.mask);
         clean(&mut mask, w, h, &o.mask)?;
         let mut monitor = Vec::with_capacity(mask.len());
         let mut preview = Vec::with_capacity(mask.len());
