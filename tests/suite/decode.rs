@@ -150,15 +150,7 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let overall = out.lines().last().unwrap();
-    let num = |after: &str| -> f64 {
-        let rest = &overall[overall.find(after).unwrap() + after.len()..];
-        rest.split_whitespace()
-            .next()
-            .unwrap()
-            .trim_end_matches(';')
-            .parse()
-            .unwrap()
-    };
+    let num = |after: &str| overall_figure(overall, after);
     assert!(num("mean mask IoU ") >= 0.995, "{overall}");
     assert!(
         out.contains("100.0 % within their uncertainty") || num("; of those ") >= 99.0,
@@ -305,6 +297,39 @@ fn phase_shift_sharpens_the_gray_code() {
     assert!(out.join("phase_u_03.png").is_file() && out.join("phase_v_03.png").is_file());
 }
 
+/// The number after `after` in `decode --compare-ground-truth`'s overall line.
+fn overall_figure(overall: &str, after: &str) -> f64 {
+    let rest = &overall[overall.find(after).unwrap() + after.len()..];
+    let word = rest.split_whitespace().next().unwrap();
+    word.trim_end_matches(';').parse().unwrap()
+}
+
+/// A captured scan of an ellipsoid (320×240, 4 samples per pixel, noise σ = 2, blur 0.7 px)
+/// with `views` views and light transport `transport`, in `dir/scan`.
+fn captured_ellipsoid(
+    dir: &std::path::Path,
+    views: usize,
+    transport: Transport,
+) -> std::path::PathBuf {
+    let scan = dir.join("scan");
+    let opts = SimulateOptions {
+        views,
+        width: 320,
+        height: 240,
+        screen_width: 480,
+        screen_height: 300,
+        pitch_mm: 0.8,
+        spp: 4,
+        noise: 2.0,
+        blur_px: 0.7,
+        transport,
+        ..Default::default()
+    };
+    let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
+    simulate(&shape, &scan, &opts, |_| ()).unwrap();
+    scan
+}
+
 /// Pixels where `a` is object and `b` is not, for two 8-bit masks of the same size.
 fn only_in(a: &Mat, b: &Mat) -> usize {
     let (a, b) = (a.data_bytes().unwrap(), b.data_bytes().unwrap());
@@ -320,26 +345,7 @@ fn noisy_blurred_captures_give_silhouettes_without_rim_or_holes() {
     // covered), and rays crossing the glass nearly undeflected decode like the background (false
     // holes); the edge trim and the Fresnel-based white drop must handle both.
     let dir = tempfile::tempdir().unwrap();
-    let scan = dir.path().join("scan");
-    let opts = SimulateOptions {
-        views: 3,
-        width: 320,
-        height: 240,
-        screen_width: 480,
-        screen_height: 300,
-        pitch_mm: 0.8,
-        spp: 4,
-        noise: 2.0,
-        blur_px: 0.7,
-        ..Default::default()
-    };
-    simulate(
-        &ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4),
-        &scan,
-        &opts,
-        |_| (),
-    )
-    .unwrap();
+    let scan = captured_ellipsoid(dir.path(), 3, Transport::Simple);
     let o = glasscan(&["decode", scan.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let read = |p: &std::path::Path| {
@@ -373,37 +379,13 @@ fn silhouettes_of_physical_captures_keep_their_outline() {
     // background's fine code a pixel shows instead. (With the white-ratio rule this scan's
     // outline lies 0.6 px inside the true one, IoU 0.983; with the code rule −0.04 px, 0.996.)
     let dir = tempfile::tempdir().unwrap();
-    let scan = dir.path().join("scan");
-    let opts = SimulateOptions {
-        views: 4,
-        width: 320,
-        height: 240,
-        screen_width: 480,
-        screen_height: 300,
-        pitch_mm: 0.8,
-        spp: 4,
-        noise: 2.0,
-        blur_px: 0.7,
-        transport: Transport::Physical,
-        ..Default::default()
-    };
-    simulate(
-        &ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4),
-        &scan,
-        &opts,
-        |_| (),
-    )
-    .unwrap();
+    let scan = captured_ellipsoid(dir.path(), 4, Transport::Physical);
     let o = glasscan(&["decode", scan.to_str().unwrap(), "--compare-ground-truth"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = String::from_utf8_lossy(&o.stdout);
     let overall = out.lines().find(|l| l.starts_with("overall:")).unwrap();
-    let figure = |after: &str| -> f64 {
-        let rest = &overall[overall.find(after).unwrap() + after.len()..];
-        let word = rest.split_whitespace().next().unwrap();
-        word.trim_end_matches(';').parse().unwrap()
-    };
-    let (iou, offset) = (figure("mean mask IoU "), figure("decoded outline "));
+    let iou = overall_figure(overall, "mean mask IoU ");
+    let offset = overall_figure(overall, "decoded outline ");
     eprintln!("{overall}");
     assert!(iou >= 0.99, "{overall}");
     assert!(offset.abs() <= 0.15, "{overall}");
