@@ -152,6 +152,7 @@ pub fn decode_scan(
     let phase_shift = scan.config.patterns.phase_shift.filter(|_| o.use_phase);
     let phase = phase_shift.as_ref();
     let size = (scan.camera.width, scan.camera.height);
+    check_memory(size, &code, phase)?;
     // The new decode replaces `decoded/` whole once it is complete; until then the old one stays.
     let staged = StagedFolder::new(&scan.dir.join("decoded"), true, "")?;
     let out = staged.path().to_path_buf();
@@ -188,6 +189,21 @@ pub fn decode_scan(
     form::write_summary(&out, &fixed, &summaries)?;
     staged.commit()?;
     Ok(summaries)
+}
+
+/// Refuses a decode whose images would not fit the memory budget: per camera pixel it holds the
+/// background's and one view's captures (8-bit) with their decoded data at a time.
+fn check_memory(size: (u32, u32), code: &GrayCode, phase: Option<&PhaseShift>) -> Result<()> {
+    let images = crate::patterns::capture_names(code, phase).len() as u128;
+    let decoded = (std::mem::size_of::<PixelDecode>() + 6 + 2 * fine_bits(code).len()) as u128;
+    let outputs = 32; // mask, monitor point, preview, the mask's evidence
+    crate::util::budget::check(
+        &format!("decoding {}×{} captures", size.0, size.1),
+        u128::from(size.0) * u128::from(size.1),
+        2 * (images + decoded) + outputs,
+        "decode on a machine with more memory",
+    )?;
+    Ok(())
 }
 
 /// A view that cannot be decoded: monitor off, or saturated.

@@ -144,6 +144,8 @@ fn sizes_beyond_the_budget_are_refused_before_allocating() {
     ]);
     refused_with(&o, 1, "more than the limit of 1.0 GiB");
     let scan = small_scan(dir.path());
+    let o = glasscan(&["decode", s(&scan), "--max-memory-gb", "0.001"]);
+    refused_with(&o, 1, "decoding 160×120 captures");
     let o = glasscan(&[
         "hull",
         s(&scan),
