@@ -105,6 +105,7 @@ pub fn from_background(
         config.patterns.phase_shift.as_ref(),
         (camera.width, camera.height),
         &DecodeOptions::default(),
+        false,
     )?;
     calibrate_screen(&cap, &code, camera, pitch_mm)
 }

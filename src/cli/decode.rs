@@ -137,8 +137,7 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         outln!(
             "overall: mean mask IoU {:.4}; decoded outline {:+.3} px from the true one (> 0: outside); {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
             rows.iter().map(|c| c.mask_iou).sum::<f64>() / rows.len().max(1) as f64,
-            (rows.iter().map(|c| c.mask_extra as f64 - c.mask_missing as f64).sum::<f64>())
-                / rows.iter().map(|c| c.outline).sum::<usize>().max(1) as f64,
+            Comparison::overall_edge_offset_px(&rows),
             100.0 * n as f64 / valid.max(1) as f64,
             100.0 * w(|c| c.within_1px_footprint),
             100.0 * w(|c| c.within_uncertainty_footprint),

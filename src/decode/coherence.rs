@@ -13,6 +13,7 @@
 
 use rayon::prelude::*;
 
+use super::graycode::BitTest;
 use crate::patterns::GrayCode;
 
 /// Stripes of at most this half-period (monitor pixels) count as fine.
@@ -20,11 +21,13 @@ pub const FINE_HALF_PERIOD_PX: u32 = 32;
 /// Fewest fine bits the background must decode reliably at a pixel for a share.
 pub const MIN_FINE_BITS: usize = 2;
 
-/// The fine bits' pattern − inverse differences of one view, grey levels: pixel `p`'s are
-/// `diffs[p * bits .. (p + 1) * bits]`, in [`fine_bits`]' order.
+/// The fine bits' pattern − inverse differences of one capture, grey levels: pixel `p`'s are
+/// `diffs[p * bits .. (p + 1) * bits]`, in [`fine_bits`]' order; and per pixel the smallest
+/// difference of a reliable bit there ([`BitTest::need`]).
 pub struct FineDiffs {
     pub bits: usize,
     pub diffs: Vec<i16>,
+    pub need: Vec<f32>,
 }
 
 /// Indices (into OpenCV's bit order: columns then rows, most significant first) of the bits
@@ -38,28 +41,42 @@ pub fn fine_bits(code: &GrayCode) -> Vec<usize> {
 }
 
 impl FineDiffs {
-    /// From a view's pattern images (OpenCV's order: pattern, inverse, per bit; one size).
-    pub fn new(images: &[&[u8]], fine: &[usize]) -> Self {
-        let n = images.first().map_or(0, |i| i.len());
-        let diffs = (0..n)
-            .flat_map(|p| {
-                fine.iter()
-                    .map(move |&k| images[2 * k][p] as i16 - images[2 * k + 1][p] as i16)
-            })
+    /// From a capture's pattern images (OpenCV's order: pattern, inverse, per bit), white and
+    /// black images (all of one size), keeping the bits `fine`.
+    pub fn new(
+        images: &[&[u8]],
+        white: &[u8],
+        black: &[u8],
+        fine: &[usize],
+        test: BitTest,
+    ) -> Self {
+        let bits = fine.len();
+        let mut diffs = vec![0i16; white.len() * bits];
+        diffs
+            .par_chunks_mut(bits.max(1))
+            .enumerate()
+            .for_each(|(p, out)| {
+                for (d, &k) in out.iter_mut().zip(fine) {
+                    *d = images[2 * k][p] as i16 - images[2 * k + 1][p] as i16;
+                }
+            });
+        let need = white
+            .par_iter()
+            .zip(black)
+            .map(|(&w, &b)| test.need(w, b))
             .collect();
-        Self {
-            bits: fine.len(),
-            diffs,
-        }
+        Self { bits, diffs, need }
     }
 }
 
 /// Per pixel the share (0..=1) of the background's fine code that `view` shows: see the module
 /// doc. `NaN` where the background decodes fewer than [`MIN_FINE_BITS`] fine bits reliably, that
-/// is with a difference of at least `need[p]` grey levels.
-pub fn background_share(view: &FineDiffs, background: &FineDiffs, need: &[f32]) -> Vec<f32> {
+/// is with a difference of at least its `need` there.
+pub fn background_share(view: &FineDiffs, background: &FineDiffs) -> Vec<f32> {
     let b = view.bits;
-    need.par_iter()
+    background
+        .need
+        .par_iter()
         .enumerate()
         .map(|(p, &need)| {
             let v = &view.diffs[p * b..(p + 1) * b];
@@ -99,19 +116,22 @@ mod tests {
             .collect()
     }
 
+    /// One pixel's differences, whose reliable bits need 20 grey levels.
+    fn diffs(d: Vec<i16>) -> FineDiffs {
+        FineDiffs {
+            bits: d.len(),
+            diffs: d,
+            need: vec![20.0],
+        }
+    }
+
     #[test]
     fn share_is_the_background_part_of_a_mixed_pixel() {
         let bg: Vec<i16> = vec![180, -170, 175, -190, 160, -185, 170, -180];
         for c in [0.0, 0.3, 0.6, 1.0] {
-            let view = FineDiffs {
-                bits: 8,
-                diffs: mixed(&bg, c),
-            };
-            let background = FineDiffs {
-                bits: 8,
-                diffs: bg.clone(),
-            };
-            let share = background_share(&view, &background, &[20.0])[0];
+            let view = diffs(mixed(&bg, c));
+            let background = diffs(bg.clone());
+            let share = background_share(&view, &background)[0];
             assert!(
                 (share as f64 - (1.0 - c)).abs() < 0.03,
                 "glass share {c}: background share {share}"
@@ -121,15 +141,8 @@ mod tests {
 
     #[test]
     fn no_share_where_the_background_is_not_decoded() {
-        let view = FineDiffs {
-            bits: 3,
-            diffs: vec![100, -100, 100],
-        };
-        let background = FineDiffs {
-            bits: 3,
-            diffs: vec![150, 4, -3],
-        };
-        assert!(background_share(&view, &background, &[20.0])[0].is_nan());
+        let (view, background) = (diffs(vec![100, -100, 100]), diffs(vec![150, 4, -3]));
+        assert!(background_share(&view, &background)[0].is_nan());
     }
 
     #[test]

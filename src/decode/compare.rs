@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use anyhow::{bail, Result};
-use opencv::core::{Mat, MatTraitConst, Vec3w, Vec4w};
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec3w, Vec4w};
 use serde::Serialize;
 
 use crate::util::fixed::{FixedPoint, NONE};
@@ -36,7 +36,16 @@ impl Comparison {
     /// Mean signed offset of the decoded outline from the true one, camera pixels (> 0: the
     /// decoded silhouette is larger): (extra − missing) / outline length.
     pub fn edge_offset_px(&self) -> f64 {
-        (self.mask_extra as f64 - self.mask_missing as f64) / self.outline.max(1) as f64
+        Self::overall_edge_offset_px(std::slice::from_ref(self))
+    }
+
+    /// [`Self::edge_offset_px`] over several views together.
+    pub fn overall_edge_offset_px(rows: &[Comparison]) -> f64 {
+        let signed: f64 = rows
+            .iter()
+            .map(|c| c.mask_extra as f64 - c.mask_missing as f64)
+            .sum();
+        signed / rows.iter().map(|c| c.outline).sum::<usize>().max(1) as f64
     }
 }
 
@@ -109,29 +118,26 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
         within_uncertainty_footprint: within_u as f64 / n.max(1) as f64,
         mask_extra: extra,
         mask_missing: missing,
-        outline: outline_length(&tm)?,
+        outline: outline_length(tm.data_bytes()?, tm.cols() as usize),
     })
 }
 
-/// Pixels of the mask `m` (255 inside) with a 4-neighbour outside it or on the image border.
-fn outline_length(m: &Mat) -> Result<usize> {
-    let (h, w) = (m.rows(), m.cols());
-    let inside = |y: i32, x: i32| -> Result<bool> {
-        Ok(y >= 0 && x >= 0 && y < h && x < w && *m.at_2d::<u8>(y, x)? == 255)
-    };
-    let mut n = 0;
-    for y in 0..h {
-        for x in 0..w {
-            if inside(y, x)? {
-                let all = inside(y - 1, x)?
-                    && inside(y + 1, x)?
-                    && inside(y, x - 1)?
-                    && inside(y, x + 1)?;
-                n += !all as usize;
-            }
-        }
-    }
-    Ok(n)
+/// Pixels of the `width`-wide mask `m` (row-major, 255 inside) with a 4-neighbour outside it or
+/// on the image border.
+fn outline_length(m: &[u8], width: usize) -> usize {
+    let height = m.len() / width;
+    let inside = |x: usize, y: usize| m[y * width + x] == 255;
+    (0..m.len())
+        .map(|i| (i % width, i / width))
+        .filter(|&(x, y)| inside(x, y))
+        .filter(|&(x, y)| {
+            x == 0
+                || y == 0
+                || x + 1 == width
+                || y + 1 == height
+                || !(inside(x - 1, y) && inside(x + 1, y) && inside(x, y - 1) && inside(x, y + 1))
+        })
+        .count()
 }
 
 #[cfg(test)]
@@ -146,10 +152,7 @@ mod tests {
                 data[y * 30 + x] = 255;
             }
         }
-        let m = Mat::new_rows_cols_with_data(20, 30, &data)
-            .unwrap()
-            .clone_pointee();
-        assert_eq!(outline_length(&m).unwrap(), 36);
+        assert_eq!(outline_length(&data, 30), 36);
         // A mask one pixel larger all round: (12² − 10²) extra pixels over the 36-pixel outline.
         let c = Comparison {
             mask_extra: 44,

@@ -61,20 +61,19 @@ pub struct DecodedCapture {
     pub pixels: Vec<PixelDecode>,
     pub lit: Vec<bool>,
     pub white: Vec<u8>,
-    /// Per pixel the smallest difference of a reliable bit ([`BitTest::need`]), grey levels.
-    pub need: Vec<f32>,
-    /// The fine bits' pattern − inverse differences (the mask's edge rule).
-    pub fine: FineDiffs,
+    /// The fine bits' pattern − inverse differences (the mask's edge rule), when asked for.
+    pub fine: Option<FineDiffs>,
 }
 
-/// Reads and decodes the captures in `dir` (with the phase-shift images if `phase` is given);
-/// names the missing or misfit image.
+/// Reads and decodes the captures in `dir` (with the phase-shift images if `phase` is given),
+/// keeping the fine bits' differences if `keep_fine`; names the missing or misfit image.
 pub fn decode_captures(
     dir: &Path,
     code: &GrayCode,
     phase: Option<&PhaseShift>,
     size: (u32, u32),
     o: &DecodeOptions,
+    keep_fine: bool,
 ) -> Result<DecodedCapture> {
     let names = crate::patterns::capture_names(code, phase);
     let mut mats = Vec::with_capacity(names.len());
@@ -115,12 +114,7 @@ pub fn decode_captures(
         min_contrast: o.min_contrast,
     };
     let mut pixels = decode_view(&data[..n], white, black, code, test);
-    let need = white
-        .iter()
-        .zip(black)
-        .map(|(&w, &b)| test.need(w, b))
-        .collect();
-    let fine = FineDiffs::new(&data[..n], &fine_bits(code));
+    let fine = keep_fine.then(|| FineDiffs::new(&data[..n], white, black, &fine_bits(code), test));
     if let Some(p) = phase {
         phase::refine(&mut pixels, &data[n + 2..], p, o.min_modulation);
     }
@@ -135,7 +129,6 @@ pub fn decode_captures(
         pixels,
         lit,
         white: white.to_vec(),
-        need,
         fine,
     })
 }
@@ -171,7 +164,8 @@ pub fn decode_scan(
     };
     let mut summaries = Vec::new();
     for &k in views {
-        let cap = decode_captures(&scan.view_dir(k), &code, phase, size, o)?;
+        let keep_fine = background_capture.is_some();
+        let cap = decode_captures(&scan.view_dir(k), &code, phase, size, o, keep_fine)?;
         let summary = match view_problem(&cap) {
             Some(why) => ViewSummary {
                 view: k,
@@ -233,7 +227,7 @@ fn background_reference(
 ) -> Result<(Vec<BackgroundPixel>, Option<DecodedCapture>)> {
     let dir = scan.background_dir();
     if dir.is_dir() {
-        let cap = decode_captures(&dir, code, phase, size, o)?;
+        let cap = decode_captures(&dir, code, phase, size, o, true)?;
         let pixels = cap
             .pixels
             .iter()
@@ -291,7 +285,10 @@ impl ViewWriter<'_> {
             o,
             fixed,
         } = *self;
-        let share = background_capture.map(|b| background_share(&cap.fine, &b.fine, &b.need));
+        let share = match (&cap.fine, background_capture.and_then(|b| b.fine.as_ref())) {
+            (Some(view), Some(background)) => Some(background_share(view, background)),
+            _ => None,
+        };
         let (w, h) = (cap.width as i32, cap.height as i32);
         let view = ViewPixels {
             width: cap.width,

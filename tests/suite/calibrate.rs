@@ -191,6 +191,7 @@ fn simulated_monitor_pose_matches_its_truth() {
         None,
         (truth.camera.width, truth.camera.height),
         &DecodeOptions::default(),
+        false,
     )
     .unwrap();
     let cal = calibrate_screen(&cap, &code, &truth.camera, truth.screen.pitch_mm).unwrap();
@@ -258,6 +259,7 @@ fn monitor_pose_from_partial_decodes_at_large_footprints() {
         None,
         size,
         &DecodeOptions::default(),
+        false,
     )
     .unwrap();
     let cal = calibrate_screen(&cap, &code, &truth.camera, truth.screen.pitch_mm).unwrap();
