@@ -126,6 +126,12 @@ pub struct Settings {
     /// from the hull does not; Large Steps then refines without SGD's plateau.
     #[serde(default)]
     pub warmup_stages: usize,
+    /// Share of each stage's last iterations whose vertex positions are averaged into the
+    /// stage's mesh (Polyak–Ruppert tail averaging: with a constant learning rate the iterates
+    /// scatter about the minimum by the noise of the sampled views, and their mean scatters
+    /// less); 0: the last iterate. The warm-up's stages take `drt`'s (0).
+    #[serde(default)]
+    pub average_share: f64,
 }
 
 fn one() -> u32 {
@@ -229,6 +235,7 @@ impl Settings {
             min_cos: 0.0,
             footprint: 1,
             robust_anneal: 1.0,
+            average_share: 0.5,
         };
         match preset {
             Preset::Fast => base,
@@ -276,6 +283,7 @@ impl Settings {
                 smoothness: Smoothness::NegLogOnePlusCos,
                 warmup_stages: 0,
                 validation_share: 0.0,
+                average_share: 0.0,
                 ..base
             },
         }
@@ -347,6 +355,9 @@ impl Settings {
         }
         if !(0.0..=0.5).contains(&self.validation_share) {
             return bad("validation_share", "must lie in [0, 0.5]");
+        }
+        if !(0.0..1.0).contains(&self.average_share) {
+            return bad("average_share", "must lie in [0, 1)");
         }
         Ok(())
     }

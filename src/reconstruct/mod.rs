@@ -37,7 +37,7 @@ use crate::trace::path::MeshSurface;
 use crate::trace::refract::IOR_AIR;
 use crate::trace::BuildMode;
 use config::Settings;
-use optim::Stepper;
+use optim::{Stepper, TailMean};
 use output::commit;
 pub use output::{checkpoint_path, stage_path, Existing};
 use validation::{validate_mesh, Split, ValidationRecord};
@@ -274,6 +274,7 @@ fn run_stage(
     )?;
     let (mut used, mut drops, mut contour) = (0, Drops::default(), 0);
     let mut last = IterationRecord::default();
+    let mut tail = TailMean::new(settings.iterations, settings.average_share);
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ ((s as u64) << 40) ^ it as u64);
         let terms = Terms {
@@ -294,6 +295,10 @@ fn run_stage(
         }
         surface.update_positions(&next)?;
         mesh.positions = next;
+        tail.add(it, &mesh.positions);
+    }
+    if let Some(mean) = tail.mean() {
+        mesh.positions = mean;
     }
     Ok(StageReport {
         stage: s,

@@ -180,6 +180,48 @@ impl Stepper {
     }
 }
 
+/// The mean of the vertex positions over a stage's last iterations (Polyak–Ruppert averaging).
+pub struct TailMean {
+    /// The first iteration averaged.
+    first: usize,
+    sum: Vec<V3>,
+    count: usize,
+}
+
+impl TailMean {
+    /// Averages the last `share` of `iterations` (none when `share` is 0).
+    pub fn new(iterations: usize, share: f64) -> Self {
+        let n = (share * iterations as f64).round() as usize;
+        Self {
+            first: if n == 0 {
+                usize::MAX
+            } else {
+                iterations - n.min(iterations)
+            },
+            sum: Vec::new(),
+            count: 0,
+        }
+    }
+
+    /// Adds the positions after iteration `it` when it is in the tail.
+    pub fn add(&mut self, it: usize, positions: &[Point3<f64>]) {
+        if it < self.first {
+            return;
+        }
+        self.sum.resize(positions.len(), V3::zeros());
+        for (s, p) in self.sum.iter_mut().zip(positions) {
+            *s += p.coords;
+        }
+        self.count += 1;
+    }
+
+    /// The mean, when any iteration was averaged.
+    pub fn mean(&self) -> Option<Vec<Point3<f64>>> {
+        let n = self.count as f64;
+        (self.count > 0).then(|| self.sum.iter().map(|s| Point3::from(s / n)).collect())
+    }
+}
+
 /// The quantile of the non-zero gradient lengths that [`clipped`] scales: the median is no scale
 /// in fine stages, where most vertices see no sampled ray in an iteration.
 const CLIP_QUANTILE: f64 = 0.99;
@@ -206,6 +248,19 @@ fn clipped(grad: &[V3], clip: f64) -> Vec<V3> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tail_mean_averages_only_the_last_share_of_iterations() {
+        let at = |x: f64| vec![Point3::new(x, 2.0 * x, -x)];
+        let mut tail = TailMean::new(4, 0.5);
+        for (it, x) in [100.0, 50.0, 1.0, 3.0].into_iter().enumerate() {
+            tail.add(it, &at(x));
+        }
+        assert_eq!(tail.mean(), Some(at(2.0)));
+        let mut off = TailMean::new(4, 0.0);
+        off.add(3, &at(1.0));
+        assert_eq!(off.mean(), None);
+    }
 
     #[test]
     fn clipping_cuts_only_outliers_to_the_bound() {

@@ -266,6 +266,8 @@ fn config_values_are_range_checked() {
         ("smoothness = { tolerant = { tau = 0.0 } }", "setting smoothness"),
         ("smoothness = { annealed = { tau = 0.1 } }", "annealed"),
         ("iterations = 1000000000", "setting iterations"),
+        ("average_share = 1.0", "setting average_share"),
+        ("average_share = -0.5", "setting average_share"),
     ] {
         std::fs::write(&config, text).unwrap();
         let o = glasscan(&["reconstruct", s(&scan), "-o", s(&out), "--config", s(&config)]);
