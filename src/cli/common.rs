@@ -214,7 +214,7 @@ impl Progress for StageBars {
     fn stage_end(&self, r: &StageReport) {
         self.bar.suspend(|| {
             eprintln!(
-                "stage {:>2}: edge {:.2} mm, {} faces, {:.1} s, loss {:.3e} (refraction {:.3e}, silhouette {:.3e}, smoothness {:.3e}), rays used {}, dropped {}",
+                "stage {:>2}: edge {:.2} mm, {} faces, {:.1} s, loss {:.3e} (refraction {:.3e}, silhouette {:.3e}, smoothness {:.3e}), rays used {}, dropped {}{}",
                 r.stage + 1,
                 r.edge_mm,
                 r.faces,
@@ -224,7 +224,12 @@ impl Progress for StageBars {
                 r.last.silhouette,
                 r.last.smoothness,
                 r.refraction_rays_used,
-                r.refraction_drops.total()
+                r.refraction_drops.total(),
+                if r.averaged {
+                    ", mesh: the mean of the last iterates"
+                } else {
+                    ""
+                }
             )
         });
     }

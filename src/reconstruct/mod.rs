@@ -16,7 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use nalgebra::Vector3;
+use nalgebra::{Point3, Vector3};
 use rand::seq::index::sample;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -79,6 +79,9 @@ pub struct StageReport {
     /// The stage mesh's fit to the held-out views (none held out: `None`).
     #[serde(default)]
     pub validation: Option<ValidationRecord>,
+    /// The stage's mesh is the mean of its last iterates (`average_share`), not its last.
+    #[serde(default)]
+    pub averaged: bool,
 }
 
 /// The state saved after every stage.
@@ -231,7 +234,7 @@ fn run_next_stage(
     let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
     let stages = ck.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
-    let report = run_stage(
+    let (report, mean) = run_stage(
         (inputs, split),
         &mut mesh,
         &phase,
@@ -240,10 +243,12 @@ fn run_next_stage(
         &mut ck.history,
         progress,
     )?;
-    let validation = validate_mesh(inputs, split, &mesh, &ck.settings)?;
+    let (validation, averaged) = settle_stage((inputs, split), &mut mesh, mean, &ck.settings)?;
     let report = StageReport {
         seconds: t0.elapsed().as_secs_f64(),
+        degenerate_faces: check_stage_mesh(&mesh, s)?,
         validation,
+        averaged,
         ..report
     };
     progress.stage_end(&report);
@@ -252,8 +257,33 @@ fn run_next_stage(
     Ok(mesh)
 }
 
+/// The stage's mesh: its last iterate (in `mesh`) or the mean of its last iterates, whichever
+/// fits the held-out views better (the mean when none are held out: a stage still far from its
+/// minimum ends ahead of its mean, one at its minimum ends in the noise about it). Returns the
+/// chosen mesh's fit and whether it is the mean.
+fn settle_stage(
+    (inputs, split): (&Inputs, &Split),
+    mesh: &mut TriMesh,
+    mean: Option<Vec<Point3<f64>>>,
+    settings: &Settings,
+) -> Result<(Option<ValidationRecord>, bool)> {
+    let last_fit = validate_mesh(inputs, split, mesh, settings)?;
+    let Some(mean) = mean else {
+        return Ok((last_fit, false));
+    };
+    let last = std::mem::replace(&mut mesh.positions, mean);
+    let mean_fit = validate_mesh(inputs, split, mesh, settings)?;
+    match (last_fit, mean_fit) {
+        (Some(l), Some(m)) if l.total < m.total => {
+            mesh.positions = last;
+            Ok((Some(l), false))
+        }
+        (_, m) => Ok((m, true)),
+    }
+}
+
 /// The iterations of stage `s` of the run, stage `k` of `settings`' schedule, on `mesh` (moved in
-/// place).
+/// place to the last iterate), and the mean of the last iterates when `settings` average them.
 fn run_stage(
     (inputs, split): (&Inputs, &Split),
     mesh: &mut TriMesh,
@@ -262,7 +292,7 @@ fn run_stage(
     edge_mm: f64,
     history: &mut Vec<IterationRecord>,
     progress: &dyn Progress,
-) -> Result<StageReport> {
+) -> Result<(StageReport, Option<Vec<Point3<f64>>>)> {
     let mut surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Refit)?;
     let edges = mesh.interior_edges();
     let mut stepper = Stepper::new(
@@ -297,10 +327,7 @@ fn run_stage(
         mesh.positions = next;
         tail.add(it, &mesh.positions);
     }
-    if let Some(mean) = tail.mean() {
-        mesh.positions = mean;
-    }
-    Ok(StageReport {
+    let report = StageReport {
         stage: s,
         edge_mm,
         vertices: mesh.positions.len(),
@@ -309,10 +336,12 @@ fn run_stage(
         refraction_rays_used: used,
         refraction_drops: drops,
         contour_edges_used: contour,
-        degenerate_faces: check_stage_mesh(mesh, s)?,
+        degenerate_faces: 0,
         last,
         validation: None,
-    })
+        averaged: false,
+    };
+    Ok((report, tail.mean()))
 }
 
 /// One term's value at an iteration: its weighted sum, the weight it is a mean over, what it

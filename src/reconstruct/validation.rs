@@ -150,6 +150,7 @@ mod tests {
                 total,
                 ..Default::default()
             }),
+            averaged: false,
         }
     }
 

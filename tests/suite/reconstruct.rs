@@ -334,5 +334,6 @@ fn refraction_carries_the_shape_beyond_the_hull() {
 }
 
 /// A short schedule for the pebble test (no warm-up: its DRT weights would not follow the
-/// refraction weight under test).
-const PEBBLE_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.06\nfinal_edge = 0.04\niterations = 60\nrefraction_views = 4\n";
+/// refraction weight under test; no averaging of the iterates: 60 iterations from the hull end
+/// ahead of their mean, 0.169 mm against 0.195).
+const PEBBLE_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.06\nfinal_edge = 0.04\niterations = 60\nrefraction_views = 4\naverage_share = 0.0\n";
