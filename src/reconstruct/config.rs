@@ -126,10 +126,11 @@ pub struct Settings {
     /// from the hull does not; Large Steps then refines without SGD's plateau.
     #[serde(default)]
     pub warmup_stages: usize,
-    /// Share of each stage's last iterations whose vertex positions are averaged into the
-    /// stage's mesh (Polyak–Ruppert tail averaging: with a constant learning rate the iterates
-    /// scatter about the minimum by the noise of the sampled views, and their mean scatters
-    /// less); 0: the last iterate. The warm-up's stages take `drt`'s (0).
+    /// Share of each stage's last iterations whose vertex positions are averaged (Polyak–Ruppert
+    /// tail averaging: with a constant learning rate the iterates scatter about the minimum by
+    /// the noise of the sampled views, and their mean scatters less); the stage keeps the mean
+    /// or its last iterate, whichever fits the held-out views better. 0: the last iterate. The
+    /// warm-up's stages take `drt`'s (0).
     #[serde(default)]
     pub average_share: f64,
 }

@@ -258,9 +258,9 @@ fn run_next_stage(
 }
 
 /// The stage's mesh: its last iterate (in `mesh`) or the mean of its last iterates, whichever
-/// fits the held-out views better (the mean when none are held out: a stage still far from its
-/// minimum ends ahead of its mean, one at its minimum ends in the noise about it). Returns the
-/// chosen mesh's fit and whether it is the mean.
+/// fits the held-out views better — a stage still far from its minimum ends ahead of its mean,
+/// one at its minimum ends in the noise about it; the mean when no view is held out. Returns
+/// the chosen mesh's fit and whether it is the mean.
 fn settle_stage(
     (inputs, split): (&Inputs, &Split),
     mesh: &mut TriMesh,
