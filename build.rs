@@ -90,16 +90,20 @@ fn embree_headers_present() -> bool {
 }
 
 /// Builds the shim with CMake against `explicit` (or a package config) and returns the folder
-/// it was installed to.
+/// it was installed to. The three variables are always defined, empty without `explicit`: CMake
+/// keeps a variable from the build folder's previous configure when it is not given again, so a
+/// build after `make test-embree4` would otherwise link Embree 4 without its rpath.
 fn build_shim(explicit: Option<&ExplicitEmbree>) -> PathBuf {
     let mut config = cmake::Config::new("cmake");
     config.profile("Release");
-    if let Some(e) = explicit {
-        config
-            .define("GS_EMBREE_INCLUDE_DIR", &e.include)
-            .define("GS_EMBREE_LIBRARY", &e.library)
-            .define("GS_EMBREE_MAJOR", e.major.to_string());
-    }
+    let (include, library, major) = match explicit {
+        Some(e) => (e.include.clone(), e.library.clone(), e.major.to_string()),
+        None => Default::default(),
+    };
+    config
+        .define("GS_EMBREE_INCLUDE_DIR", include)
+        .define("GS_EMBREE_LIBRARY", library)
+        .define("GS_EMBREE_MAJOR", major);
     config.build()
 }
 
