@@ -29,7 +29,7 @@ use crate::reconstruct::plot::time_accuracy_plot;
 use crate::reconstruct::validation::best_stage;
 use crate::reconstruct::{self, stage_path, Existing, Progress, Start};
 use crate::scan::Scan;
-use crate::simulate::{simulate, SimulateOptions, Transport};
+use crate::simulate::{monitor_covers, simulate, SimulateOptions, Transport};
 
 /// The scans the benchmark simulates, 72 views each.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -63,11 +63,27 @@ impl ScanKind {
     /// The simulator's options for this kind of scan on `rig`.
     pub fn simulate_options(self, rig: &Rig) -> SimulateOptions {
         let noisy = self != ScanKind::Exact;
+        let d = SimulateOptions::default();
         SimulateOptions {
             views: SCAN_VIEWS,
             width: rig.width,
             height: rig.height,
             fill: rig.fill,
+            screen_width: if rig.large_monitor {
+                LARGE_MONITOR.0
+            } else {
+                d.screen_width
+            },
+            screen_height: if rig.large_monitor {
+                LARGE_MONITOR.1
+            } else {
+                d.screen_height
+            },
+            pitch_mm: if rig.large_monitor {
+                LARGE_MONITOR.2
+            } else {
+                d.pitch_mm
+            },
             decoded_only: !noisy,
             spp: if noisy { 4 } else { 1 },
             noise: if noisy { 2.0 } else { 0.0 },
@@ -78,7 +94,7 @@ impl ScanKind {
             },
             // The bench's own work folder: a scan left half made (decode interrupted) is replaced.
             force: true,
-            ..Default::default()
+            ..d
         }
     }
 }
@@ -89,13 +105,21 @@ impl std::fmt::Display for ScanKind {
     }
 }
 
-/// The simulated camera: image size (px) and the share of the image height the object fills.
+/// The simulated camera: image size (px) and the share of the image height the object fills;
+/// and whether the rig's monitor is the simulator's default or [`LARGE_MONITOR`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Rig {
     pub width: u32,
     pub height: u32,
     pub fill: f64,
+    /// [`LARGE_MONITOR`] instead of the default one, which does not cover the object.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub large_monitor: bool,
 }
+
+/// A 32-inch 4K monitor (3840 × 2160 pixels of 0.1845 mm, 398 mm tall): the bench's monitor
+/// for objects the default 24-inch one (293 mm tall) does not cover, such as the horse.
+pub const LARGE_MONITOR: (u32, u32, f64) = (3840, 2160, 0.1845);
 
 impl Default for Rig {
     /// The simulator's defaults (1280×960, fill 0.6); results written before the rig was
@@ -106,6 +130,7 @@ impl Default for Rig {
             width: s.width,
             height: s.height,
             fill: s.fill,
+            large_monitor: false,
         }
     }
 }
@@ -113,11 +138,29 @@ impl Default for Rig {
 impl Rig {
     /// Suffix of the scan folders: none for the default rig.
     fn folder_suffix(&self) -> String {
-        if *self == Rig::default() {
+        let camera = Rig {
+            large_monitor: false,
+            ..*self
+        };
+        let mut suffix = if camera == Rig::default() {
             String::new()
         } else {
             format!("_{}x{}_fill{}", self.width, self.height, self.fill)
+        };
+        if self.large_monitor {
+            let (w, h, _) = LARGE_MONITOR;
+            suffix += &format!("_monitor{w}x{h}");
         }
+        suffix
+    }
+
+    /// This rig for `mesh`: with [`LARGE_MONITOR`] if the default monitor does not cover it.
+    fn for_object(&self, mesh: &TriMesh) -> Result<Rig> {
+        let default = ScanKind::Exact.simulate_options(self);
+        Ok(Rig {
+            large_monitor: !monitor_covers(mesh, &default)?,
+            ..*self
+        })
     }
 }
 
@@ -182,10 +225,11 @@ pub fn run_bench(
     presets.sort_by_key(|p| *p == Preset::Drt);
     for object in &o.objects {
         let object_mesh = ObjectMesh::locate(&o.meshes, object)?;
+        let rig = o.rig.for_object(&object_mesh.read()?)?;
         for &kind in &o.scans {
             let scan_dir =
-                (o.work.join("scans")).join(format!("{object}_{kind}{}", o.rig.folder_suffix()));
-            ensure_scan(&object_mesh, &scan_dir, kind, &o.rig, log)?;
+                (o.work.join("scans")).join(format!("{object}_{kind}{}", rig.folder_suffix()));
+            ensure_scan(&object_mesh, &scan_dir, kind, &rig, log)?;
             let scan = Scan::open(&scan_dir)?;
             let truth = read_mesh(&scan_dir.join("ground_truth.ply"))?;
             for &views in &o.views {
@@ -193,7 +237,7 @@ pub fn run_bench(
                     let case = Case {
                         object,
                         kind,
-                        rig: o.rig,
+                        rig,
                         preset,
                         views,
                     };
@@ -483,8 +527,13 @@ fn write_results(work: &Path, results: &[BenchRun]) -> Result<()> {
     );
     for r in results {
         md += &format!(
-            "| {} | {} | {} | {} | {:.0} | {:.3} | {:.3} | {:.3} | {:.3} | {}/{} | {} |\n",
+            "| {}{} | {} | {} | {} | {:.0} | {:.3} | {:.3} | {:.3} | {:.3} | {}/{} | {} |\n",
             r.object,
+            if r.rig.large_monitor {
+                " (32\" monitor)"
+            } else {
+                ""
+            },
             r.scan,
             r.preset,
             r.views,

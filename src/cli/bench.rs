@@ -199,6 +199,7 @@ fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
             width: a.size.0,
             height: a.size.1,
             fill: a.fill,
+            large_monitor: false,
         },
     };
     let bars = super::common::StageBars::new();

@@ -8,6 +8,7 @@ use clap::Args;
 use crate::mesh::io::read_mesh;
 use crate::mesh::validate::{validate, InvalidMesh, Report};
 use crate::mesh::{stats, TriMesh};
+use crate::trace::thickness::thickness_quantile;
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
@@ -20,11 +21,23 @@ pub fn run(args: &InfoArgs) -> Result<()> {
     let report = validate(&mesh);
     out!("{}", describe(&args.mesh, &mesh, &report));
     if report.is_valid() {
+        outln!("{}", describe_thickness(&mesh)?);
         Ok(())
     } else {
         Err(InvalidMesh(report.defects))
             .with_context(|| format!("{} is not a valid mesh", args.mesh.display()))
     }
+}
+
+/// The local thickness line of a valid mesh (see [`crate::trace::thickness`]).
+fn describe_thickness(mesh: &TriMesh) -> Result<String> {
+    let q = |share| thickness_quantile(mesh, share).map(|t| t.unwrap_or(f64::NAN));
+    Ok(format!(
+        "{:<16} thinnest 2 % of the area under {:.4}, median {:.4}",
+        "thickness (mm)",
+        q(0.02)?,
+        q(0.5)?
+    ))
 }
 
 /// The human-readable summary `info` prints.

@@ -142,6 +142,13 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
         "object pixels (pixel-centre rays meeting the object): {}",
         r.object_pixels
     );
+    if !r.monitor_covers_object {
+        eprintln!(
+            "warning: the monitor does not cover the object in every view: parts of it show no \
+             pattern and decode cuts them off the silhouettes; use a larger --screen (or \
+             --pitch-mm) or a smaller --screen-distance-mm"
+        );
+    }
     for (what, share) in [
         (
             "exactly 2 refractions, reach the monitor",

@@ -253,6 +253,28 @@ fn trim_mixed_edge(
     }
 }
 
+/// Object pixels (255 in `mask`) next to a pixel where the background shows no monitor (nothing
+/// decoded there, and dark if a background was captured): there the silhouette reaches the edge
+/// of the monitor's image, and whatever of the object lies beyond it shows nothing the decoder
+/// could tell from the background, so it is cut off the silhouette.
+pub fn pixels_at_monitor_edge(mask: &[u8], background: &[BackgroundPixel], width: usize) -> usize {
+    let unseen = |j: usize| {
+        let b = &background[j];
+        b.point.is_none() && b.white.is_none_or(|w| w < MIN_BACKGROUND_WHITE)
+    };
+    let height = mask.len() / width.max(1);
+    (0..mask.len())
+        .filter(|&i| mask[i] == 255)
+        .filter(|&i| {
+            let (x, y) = (i % width, i / width);
+            (x > 0 && unseen(i - 1))
+                || (x + 1 < width && unseen(i + 1))
+                || (y > 0 && unseen(i - width))
+                || (y + 1 < height && unseen(i + width))
+        })
+        .count()
+}
+
 /// Drops small object regions and fills holes that are small or thin (at most 2 pixels wide on
 /// average, such as the line where a ray through the lens centre decodes like the background),
 /// in place; 8-connected regions; a background region touching the image border is no hole.

@@ -22,7 +22,7 @@ use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
 use coherence::{background_share, fine_bits, FineDiffs};
 use graycode::{decode_view, BitTest, PixelDecode};
-use mask::{clean, raw_mask, BackgroundPixel, MaskOptions, ViewPixels};
+use mask::{clean, pixels_at_monitor_edge, raw_mask, BackgroundPixel, MaskOptions, ViewPixels};
 
 /// Thresholds of decoding.
 #[derive(Clone, Copy, Debug)]
@@ -173,6 +173,7 @@ pub fn decode_scan(
                 decoded_share: 0.0,
                 complete_share: 0.0,
                 white_drop: None,
+                monitor_edge_px: 0,
                 warning: Some(why),
             },
             None => writer.write(k, &cap)?,
@@ -198,6 +199,24 @@ fn check_memory(size: (u32, u32), code: &GrayCode, phase: Option<&PhaseShift>) -
         "decode on a machine with more memory",
     )?;
     Ok(())
+}
+
+/// The warning of a decoded view with `object` object pixels, `edge` of them at the edge of the
+/// monitor's image.
+fn view_warning(object: usize, edge: usize) -> Option<String> {
+    if object == 0 {
+        return Some(
+            "no object pixel found: is the object in view, and the background right?".into(),
+        );
+    }
+    (edge > 0).then(|| {
+        format!(
+            "the object reaches the edge of the monitor's image ({edge} outline pixels): what lies \
+             beyond shows no pattern, is cut off the silhouette and carved off the hull; move the \
+             monitor closer to the object or use a larger one, so that it covers the object in \
+             every view"
+        )
+    })
 }
 
 /// A view that cannot be decoded: monitor off, or saturated.
@@ -352,16 +371,15 @@ impl ViewWriter<'_> {
             cap.height as u32,
             &preview,
         )?;
-        let warning = (object == 0).then(|| {
-            "no object pixel found: is the object in view, and the background right?".to_string()
-        });
+        let edge = pixels_at_monitor_edge(&mask, bg, cap.width);
         Ok(ViewSummary {
             view: k,
             object_pixels: object,
             decoded_share: decoded as f64 / object.max(1) as f64,
             complete_share: complete as f64 / decoded.max(1) as f64,
             white_drop: white_drop.map(f64::from),
-            warning,
+            monitor_edge_px: edge,
+            warning: view_warning(object, edge),
         })
     }
 }

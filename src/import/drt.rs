@@ -388,6 +388,7 @@ fn import_view(
         decoded_share: rays.len() as f64 / objects.max(1) as f64,
         complete_share: 1.0,
         white_drop: None,
+        monitor_edge_px: 0,
         warning: None,
     };
     Ok(ImportedView {

@@ -35,6 +35,7 @@ use crate::remesh::{remesh, RemeshOptions};
 use crate::scan::silhouette::Silhouette;
 use crate::trace::path::MeshSurface;
 use crate::trace::refract::IOR_AIR;
+use crate::trace::thickness::thickness_quantile;
 use crate::trace::BuildMode;
 use config::Settings;
 use optim::{Stepper, TailMean};
@@ -90,6 +91,10 @@ pub struct Checkpoint {
     pub settings: Settings,
     /// Bounding-box diagonal of the initial mesh (mm): the unit of the edge schedule.
     pub diagonal_mm: f64,
+    /// Thickness of the initial mesh's thinnest parts (mm): the thinnest 2 % of its area
+    /// ([`THIN_SHARE`]) is thinner; it bounds the warm-up's edge ([`stage_edge_mm`]).
+    #[serde(default)]
+    pub thin_part_mm: Option<f64>,
     /// The file (in the output folder) of the mesh the run started from.
     pub start_mesh: String,
     pub stages_done: usize,
@@ -187,6 +192,7 @@ fn begin_run(
     let ck = Checkpoint {
         settings: settings.clone(),
         diagonal_mm: mesh.bbox_diagonal(),
+        thin_part_mm: thickness_quantile(&mesh, THIN_SHARE)?,
         start_mesh: name.into(),
         stages_done: 0,
         history: Vec::new(),
@@ -214,6 +220,26 @@ fn continue_run(ck: Checkpoint, settings: &Settings, out: &Path) -> Result<(Chec
     Ok((ck, mesh))
 }
 
+/// The share of the start mesh's area whose thickness is its "thin parts" (see
+/// [`Checkpoint::thin_part_mm`]).
+const THIN_SHARE: f64 = 0.02;
+
+/// Thin parts' thickness over the warm-up's largest edge: at edge t/1.5 a tube of diameter t
+/// has about 3π/2 ≈ 5 edges around. At the schedule's coarse start a tube as thick as the edge
+/// is a triangular prism, which DRT's steps flatten (the horse's tail: docs/decisions.md).
+const THIN_PART_EDGES: f64 = 1.5;
+
+/// Target edge length of stage `s` (index `k` in its own schedule `phase`), mm: the schedule's
+/// share of the start mesh's diagonal, and in the warm-up at most the thin parts' thickness
+/// over [`THIN_PART_EDGES`].
+fn stage_edge_mm(ck: &Checkpoint, phase: &Settings, s: usize, k: usize) -> f64 {
+    let edge = phase.edge_mm(k, ck.diagonal_mm);
+    match ck.thin_part_mm {
+        Some(thin) if s < ck.settings.warmup_stages => edge.min(thin / THIN_PART_EDGES),
+        _ => edge,
+    }
+}
+
 /// Remeshes `mesh` to the next stage's edge length, runs that stage on the views `split` fits
 /// and measures the result on those it holds out; records it in `ck`.
 fn run_next_stage(
@@ -226,7 +252,13 @@ fn run_next_stage(
     let s = ck.stages_done;
     let t0 = Instant::now();
     let (phase, k) = ck.settings.stage(s);
-    let edge_mm = phase.edge_mm(k, ck.diagonal_mm);
+    let edge_mm = stage_edge_mm(ck, &phase, s, k);
+    if s == 0 && edge_mm < phase.edge_mm(k, ck.diagonal_mm) {
+        progress.note(&format!(
+            "warm-up at {edge_mm:.2} mm edges: 2 % of the start mesh's area is thinner than {:.2} mm",
+            ck.thin_part_mm.unwrap_or(f64::NAN)
+        ));
+    }
     let opts = RemeshOptions {
         iterations: phase.remesh_iterations,
         ..RemeshOptions::uniform(edge_mm)

@@ -32,6 +32,10 @@ pub struct ViewSummary {
     /// Mask rule 3's threshold used (relative white drop), where a background was captured.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub white_drop: Option<f64>,
+    /// Object pixels next to pixels where the background shows no monitor: the object reaches
+    /// the edge of the monitor's image there; 0 where the monitor covers the object.
+    #[serde(default)]
+    pub monitor_edge_px: usize,
     pub warning: Option<String>,
 }
 

@@ -133,6 +133,9 @@ pub struct SimulateReport {
     /// Light the physical tracer dropped (depth limit, faint branches), as a share of the light
     /// reaching the monitor in object pixels.
     pub dropped_share: f64,
+    /// The monitor's image covers the object's in every view ([`monitor_covers`]); where it
+    /// does not, parts of the object show no pattern and `decode` cuts them off the silhouette.
+    pub monitor_covers_object: bool,
     pub seconds: f64,
 }
 
@@ -169,6 +172,7 @@ fn simulate_into(
     scan.save()?;
     write_mesh(&dir.join("ground_truth.ply"), &object.mesh)?;
     let mut report = render_views(&scan, &object, out, o, progress)?;
+    report.monitor_covers_object = object.monitor_covers(o);
     report.seconds = t0.elapsed().as_secs_f64();
     crate::util::atomic::write_atomic(&dir.join("truth").join("summary.json"), |w| {
         serde_json::to_writer_pretty(&mut *w, &report)?;
@@ -212,6 +216,26 @@ impl Placed {
             bound_radius,
             height_y: hi.y - lo.y,
         })
+    }
+}
+
+/// Whether the monitor of the rig `o` would cover `mesh` in every view (see
+/// [`Placed::monitor_covers`]); an error when the mesh does not fit in the rig at all.
+pub fn monitor_covers(mesh: &TriMesh, o: &SimulateOptions) -> Result<bool> {
+    Ok(Placed::new(mesh, o)?.monitor_covers(o))
+}
+
+impl Placed {
+    /// Whether the monitor's image covers the object's in every view, judged (conservatively)
+    /// on the object's bounding cylinder about the axis: its rim's height and radius seen at
+    /// the cylinder's nearest depth to the camera, against the monitor's half height and half
+    /// width seen at its own depth (tangents of the angles off the optical axis).
+    fn monitor_covers(&self, o: &SimulateOptions) -> bool {
+        let near = o.camera_distance_mm - self.radius_xz;
+        let behind = o.camera_distance_mm + o.screen_distance_mm;
+        let half = |px: u32| px as f64 * o.pitch_mm / 2.0 / behind;
+        half(o.screen_height) >= self.height_y / 2.0 / near
+            && half(o.screen_width) >= self.radius_xz / near
     }
 }
 
@@ -607,6 +631,7 @@ fn write_exact_decoded(
         decoded_share: decoded as f64 / object.max(1) as f64,
         complete_share: 1.0,
         white_drop: None,
+        monitor_edge_px: 0,
         warning: (object == 0).then(|| "no object pixel: the object is out of view".to_string()),
     })
 }
@@ -709,6 +734,7 @@ impl Tally {
             fixed_point_scale: 0.0,
             ghost_share: self.ghost_weight / self.object_weight.max(f64::MIN_POSITIVE),
             dropped_share: self.dropped_weight / self.object_weight.max(f64::MIN_POSITIVE),
+            monitor_covers_object: false,
             seconds: 0.0,
         }
     }

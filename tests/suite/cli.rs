@@ -29,6 +29,10 @@ fn info_on_a_genus_1_figurine_reports_a_valid_genus_1_mesh() {
         out.contains(&format!("faces            {}", mesh.faces.len())),
         "{out}"
     );
+    assert!(
+        out.contains("thickness (mm)   thinnest 2 % of the area under"),
+        "{out}"
+    );
 }
 
 #[test]

@@ -138,13 +138,14 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
         spp: 1,
         ..Default::default()
     };
-    simulate(
+    let report = simulate(
         &ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4),
         &scan,
         &opts,
         |_| (),
     )
     .unwrap();
+    assert!(report.monitor_covers_object);
     let s = scan.to_str().unwrap();
     let o = glasscan(&["decode", s, "--compare-ground-truth"]);
     let out = String::from_utf8_lossy(&o.stdout);
@@ -152,6 +153,10 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
     let overall = out.lines().last().unwrap();
     let num = |after: &str| overall_figure(overall, after);
     assert!(num("mean mask IoU ") >= 0.995, "{overall}");
+    assert!(
+        !String::from_utf8_lossy(&o.stderr).contains("edge of the monitor"),
+        "the monitor covers the ellipsoid"
+    );
     assert!(
         out.contains("100.0 % within their uncertainty") || num("; of those ") >= 99.0,
         "{overall}"
@@ -232,6 +237,44 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
     assert!(o.status.code() == Some(1) && err.contains("10×10"), "{err}");
     let o = glasscan(&["decode", s, "--views", "5"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("views 0-1"));
+}
+
+#[test]
+fn an_object_taller_than_the_monitor_is_reported() {
+    // The monitor is 48 mm tall, 250 mm behind the axis: at the axis it covers 33 mm of the
+    // ellipsoid's 44, so its top and bottom show no pattern in either view.
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    let opts = SimulateOptions {
+        views: 2,
+        width: 160,
+        height: 120,
+        screen_width: 320,
+        screen_height: 40,
+        pitch_mm: 1.2,
+        spp: 1,
+        ..Default::default()
+    };
+    let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
+    let report = simulate(&shape, &scan, &opts, |_| ()).unwrap();
+    assert!(!report.monitor_covers_object);
+    let o = glasscan(&["decode", scan.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    for view in ["view 0", "view 1"] {
+        assert!(
+            err.lines()
+                .any(|l| l.contains(view) && l.contains("edge of the monitor")),
+            "{err}"
+        );
+    }
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(scan.join("decoded/summary.json")).unwrap()).unwrap();
+    for v in summary["views"].as_array().unwrap() {
+        // Where the monitor's image ends, the ellipsoid is about 40 mm wide, some 65 pixels:
+        // two such rows of the outline touch the edge.
+        assert!(v["monitor_edge_px"].as_u64().unwrap() >= 20, "{v}");
+    }
 }
 
 #[test]
