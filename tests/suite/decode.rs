@@ -127,25 +127,8 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
 #[test]
 fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
     let dir = tempfile::tempdir().unwrap();
-    let scan = dir.path().join("scan");
-    let opts = SimulateOptions {
-        views: 2,
-        width: 160,
-        height: 120,
-        screen_width: 320,
-        screen_height: 200,
-        pitch_mm: 1.2,
-        spp: 1,
-        ..Default::default()
-    };
-    let report = simulate(
-        &ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4),
-        &scan,
-        &opts,
-        |_| (),
-    )
-    .unwrap();
-    assert!(report.monitor_covers_object);
+    let (scan, covered) = small_ellipsoid_scan(dir.path(), 200);
+    assert!(covered);
     let s = scan.to_str().unwrap();
     let o = glasscan(&["decode", s, "--compare-ground-truth"]);
     let out = String::from_utf8_lossy(&o.stdout);
@@ -244,20 +227,8 @@ fn an_object_taller_than_the_monitor_is_reported() {
     // The monitor is 48 mm tall, 250 mm behind the axis: at the axis it covers 33 mm of the
     // ellipsoid's 44, so its top and bottom show no pattern in either view.
     let dir = tempfile::tempdir().unwrap();
-    let scan = dir.path().join("scan");
-    let opts = SimulateOptions {
-        views: 2,
-        width: 160,
-        height: 120,
-        screen_width: 320,
-        screen_height: 40,
-        pitch_mm: 1.2,
-        spp: 1,
-        ..Default::default()
-    };
-    let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
-    let report = simulate(&shape, &scan, &opts, |_| ()).unwrap();
-    assert!(!report.monitor_covers_object);
+    let (scan, covered) = small_ellipsoid_scan(dir.path(), 40);
+    assert!(!covered);
     let o = glasscan(&["decode", scan.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
@@ -338,6 +309,26 @@ fn phase_shift_sharpens_the_gray_code() {
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(out.join("phase_u_03.png").is_file() && out.join("phase_v_03.png").is_file());
+}
+
+/// A 2-view 160×120 scan (1 sample per pixel, no noise) of a 60 × 44 × 36 mm ellipsoid in front
+/// of a 320-pixel-wide monitor `screen_height` pixels tall (1.2 mm pixels), in `dir/scan`; and
+/// whether the simulator found that the monitor covers it.
+fn small_ellipsoid_scan(dir: &std::path::Path, screen_height: u32) -> (std::path::PathBuf, bool) {
+    let scan = dir.join("scan");
+    let opts = SimulateOptions {
+        views: 2,
+        width: 160,
+        height: 120,
+        screen_width: 320,
+        screen_height,
+        pitch_mm: 1.2,
+        spp: 1,
+        ..Default::default()
+    };
+    let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
+    let report = simulate(&shape, &scan, &opts, |_| ()).unwrap();
+    (scan, report.monitor_covers_object)
 }
 
 /// The number after `after` in `decode --compare-ground-truth`'s overall line.
