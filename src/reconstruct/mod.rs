@@ -602,3 +602,47 @@ pub fn load_inputs(
         warnings,
     ))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use config::Preset;
+
+    fn checkpoint(thin_part_mm: Option<f64>) -> Checkpoint {
+        Checkpoint {
+            settings: Settings::preset(Preset::Balanced),
+            diagonal_mm: 240.0,
+            thin_part_mm,
+            start_mesh: "start.ply".into(),
+            stages_done: 0,
+            history: Vec::new(),
+            stages: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn thin_parts_cap_the_warm_up_edge_only() {
+        // The schedule's first edge: 240 mm / 60 = 4 mm.
+        let edges = |ck: &Checkpoint| -> Vec<f64> {
+            (0..ck.settings.total_stages())
+                .map(|s| {
+                    let (phase, k) = ck.settings.stage(s);
+                    stage_edge_mm(ck, &phase, s, k)
+                })
+                .collect()
+        };
+        let (free, thin, thick) = (
+            edges(&checkpoint(None)),
+            edges(&checkpoint(Some(3.0))),
+            edges(&checkpoint(Some(9.0))),
+        );
+        let warmup = checkpoint(None).settings.warmup_stages;
+        assert!(warmup > 0);
+        for s in 0..free.len() {
+            let want = if s < warmup { 2.0 } else { free[s] };
+            assert!((thin[s] - want).abs() < 1e-12, "stage {s}: {thin:?}");
+            assert_eq!(thick[s], free[s], "stage {s}");
+        }
+        assert!((free[0] - 4.0).abs() < 1e-12, "{free:?}");
+    }
+}
