@@ -64,26 +64,19 @@ impl ScanKind {
     pub fn simulate_options(self, rig: &Rig) -> SimulateOptions {
         let noisy = self != ScanKind::Exact;
         let d = SimulateOptions::default();
+        let (screen_width, screen_height, pitch_mm) = if rig.large_monitor {
+            LARGE_MONITOR
+        } else {
+            (d.screen_width, d.screen_height, d.pitch_mm)
+        };
         SimulateOptions {
             views: SCAN_VIEWS,
             width: rig.width,
             height: rig.height,
             fill: rig.fill,
-            screen_width: if rig.large_monitor {
-                LARGE_MONITOR.0
-            } else {
-                d.screen_width
-            },
-            screen_height: if rig.large_monitor {
-                LARGE_MONITOR.1
-            } else {
-                d.screen_height
-            },
-            pitch_mm: if rig.large_monitor {
-                LARGE_MONITOR.2
-            } else {
-                d.pitch_mm
-            },
+            screen_width,
+            screen_height,
+            pitch_mm,
             decoded_only: !noisy,
             spp: if noisy { 4 } else { 1 },
             noise: if noisy { 2.0 } else { 0.0 },
@@ -563,4 +556,31 @@ fn write_results(work: &Path, results: &[BenchRun]) -> Result<()> {
         })
         .collect();
     time_accuracy_plot(&work.join("time_vs_accuracy.png"), &series)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::shapes::ellipsoid;
+    use nalgebra::Vector3;
+
+    #[test]
+    fn an_object_the_default_monitor_does_not_cover_gets_the_large_one() {
+        // The default monitor covers about 200 mm at the axis: a 60 mm ball fits, a 240 mm
+        // tall spindle does not.
+        let rig = Rig::default();
+        let ball = rig
+            .for_object(&ellipsoid(Vector3::new(30.0, 30.0, 30.0), 3))
+            .unwrap();
+        let spindle = rig
+            .for_object(&ellipsoid(Vector3::new(30.0, 120.0, 30.0), 3))
+            .unwrap();
+        assert!(!ball.large_monitor);
+        assert_eq!(ball.folder_suffix(), "");
+        assert!(spindle.large_monitor);
+        assert_eq!(spindle.folder_suffix(), "_monitor3840x2160");
+        let o = ScanKind::Physical.simulate_options(&spindle);
+        assert_eq!((o.screen_width, o.screen_height, o.pitch_mm), LARGE_MONITOR);
+        assert!(monitor_covers(&ellipsoid(Vector3::new(30.0, 120.0, 30.0), 3), &o).unwrap());
+    }
 }
