@@ -8,7 +8,7 @@ use clap::Args;
 use crate::mesh::io::read_mesh;
 use crate::mesh::validate::{validate, InvalidMesh, Report};
 use crate::mesh::{stats, TriMesh};
-use crate::trace::thickness::thickness_quantile;
+use crate::trace::thickness::thickness_quantiles;
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
@@ -31,12 +31,13 @@ pub fn run(args: &InfoArgs) -> Result<()> {
 
 /// The local thickness line of a valid mesh (see [`crate::trace::thickness`]).
 fn describe_thickness(mesh: &TriMesh) -> Result<String> {
-    let q = |share| thickness_quantile(mesh, share).map(|t| t.unwrap_or(f64::NAN));
+    let q = thickness_quantiles(mesh, &[0.02, 0.5])?;
+    let mm = |t: Option<f64>| t.unwrap_or(f64::NAN);
     Ok(format!(
         "{:<16} thinnest 2 % of the area under {:.4}, median {:.4}",
         "thickness (mm)",
-        q(0.02)?,
-        q(0.5)?
+        mm(q[0]),
+        mm(q[1])
     ))
 }
 

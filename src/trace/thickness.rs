@@ -9,17 +9,26 @@ use crate::mesh::TriMesh;
 /// thickness of the thinnest 2 % of the surface. `None` when no inward ray meets the far side
 /// (an open or inside-out mesh). `mesh` must be closed and outward-oriented.
 pub fn thickness_quantile(mesh: &TriMesh, share: f64) -> Result<Option<f64>, TraceError> {
+    Ok(thickness_quantiles(mesh, &[share])?[0])
+}
+
+/// [`thickness_quantile`] for each of `shares`, from one set of rays.
+pub fn thickness_quantiles(mesh: &TriMesh, shares: &[f64]) -> Result<Vec<Option<f64>>, TraceError> {
     let mut samples = face_thicknesses(mesh)?;
     samples.sort_by(|a, b| a.0.total_cmp(&b.0));
     let total: f64 = samples.iter().map(|s| s.1).sum();
-    let mut below = 0.0;
-    for (t, area) in &samples {
-        below += area;
-        if below >= share * total {
-            return Ok(Some(*t));
-        }
-    }
-    Ok(samples.last().map(|s| s.0))
+    let quantile = |share: f64| {
+        let mut below = 0.0;
+        samples
+            .iter()
+            .find(|(_, area)| {
+                below += area;
+                below >= share * total
+            })
+            .or(samples.last())
+            .map(|s| s.0)
+    };
+    Ok(shares.iter().map(|&share| quantile(share)).collect())
 }
 
 /// (thickness mm, face area mm²) of every face whose inward ray meets the mesh again.
