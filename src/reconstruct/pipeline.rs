@@ -96,8 +96,8 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     })
 }
 
-/// The stage whose mesh fits the held-out views best, and that mesh; says so when it is not
-/// the last stage.
+/// The stage whose mesh fits the held-out views best ([`best_stage`]), and that mesh; says so
+/// when it is not the last stage.
 fn choose_result(
     out: &Path,
     finished: &Finished,
@@ -110,9 +110,16 @@ fn choose_result(
     if best == last {
         return Ok((last, finished.mesh.clone()));
     }
-    let fit = |s: usize| stages[s].validation.map_or(f64::NAN, |v| v.total);
+    let fit = |s: usize| {
+        stages[s].validation.as_ref().map_or("-".into(), |v| {
+            format!(
+                "refraction {:.4e}, silhouette {:.4e}",
+                v.refraction, v.silhouette
+            )
+        })
+    };
     progress.note(&format!(
-        "result: stage {} of {}, whose mesh fits the held-out views best ({:.4e} against {:.4e} after the last stage)",
+        "result: stage {} of {}, whose mesh fits the held-out views best ({}; after the last stage {})",
         best + 1,
         stages.len(),
         fit(best),

@@ -112,7 +112,10 @@ fn validation_points(ck: &Checkpoint) -> Vec<(f64, f64)> {
     let mut points = Vec::new();
     for st in &ck.stages {
         end += ck.history.iter().filter(|r| r.stage == st.stage).count();
-        if let (true, Some(v)) = (st.stage >= ck.settings.warmup_stages, st.validation) {
+        if let (true, Some(v)) = (
+            st.stage >= ck.settings.warmup_stages,
+            st.validation.as_ref(),
+        ) {
             points.push(((end.max(1) - 1) as f64, v.total));
         }
     }

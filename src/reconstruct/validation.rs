@@ -70,14 +70,51 @@ fn partition(held: impl Iterator<Item = bool>) -> (Vec<usize>, Vec<usize>) {
 }
 
 /// A mesh's fit to the held-out views: the weighted means of the two data terms (as the run
-/// weighs them) and their sum.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+/// weighs them) and their sum, pooled over the views and view by view.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ValidationRecord {
     pub refraction: f64,
     pub silhouette: f64,
     pub total: f64,
     /// Held-out views.
     pub views: usize,
+    /// Each held-out view's fit, in view order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub per_view: Vec<ViewFit>,
+}
+
+/// One held-out view's fit: the weighted means of the two data terms over its pixels and its
+/// outline, times the run's weights (0 for a term the view has no data for).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ViewFit {
+    /// The view's index in the scan.
+    pub view: usize,
+    pub refraction: f64,
+    pub silhouette: f64,
+}
+
+/// A term's loss and weight over one view.
+#[derive(Clone, Copy, Default)]
+struct Sums {
+    loss: f64,
+    weight: f64,
+}
+
+impl Sums {
+    fn mean(self, factor: f64) -> f64 {
+        if self.weight > 0.0 {
+            factor * self.loss / self.weight
+        } else {
+            0.0
+        }
+    }
+
+    fn add(self, other: Sums) -> Sums {
+        Sums {
+            loss: self.loss + other.loss,
+            weight: self.weight + other.weight,
+        }
+    }
 }
 
 /// The fit of `mesh` to the held-out views of `split`; `None` when none are held out.
@@ -92,41 +129,137 @@ pub fn validate_mesh(
     }
     let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
     let edges = mesh.interior_edges();
-    let targets: Vec<(usize, usize)> = split.held_targets.iter().map(|&v| (v, 0)).collect();
-    let refraction = super::refraction_over(inputs, &surface, mesh, settings, &targets)?;
-    let silhouette = super::silhouette_over(
-        inputs,
-        &surface,
-        mesh,
-        &edges,
-        settings,
-        &split.held_silhouettes,
-    )?;
-    let mean = |loss: f64, weight: f64| if weight > 0.0 { loss / weight } else { 0.0 };
-    let r = settings.weight_refraction * mean(refraction.loss, refraction.weight);
-    let s = settings.weight_silhouette * mean(silhouette.loss, silhouette.weight);
-    Ok(Some(ValidationRecord {
+    let mut views: Vec<(usize, Sums, Sums)> = Vec::new();
+    let mut entry = |view: usize| -> usize {
+        match views.iter().position(|e| e.0 == view) {
+            Some(i) => i,
+            None => {
+                views.push((view, Sums::default(), Sums::default()));
+                views.len() - 1
+            }
+        }
+    };
+    let mut rows = Vec::new();
+    for &t in &split.held_targets {
+        let term = super::refraction_over(inputs, &surface, mesh, settings, &[(t, 0)])?;
+        rows.push((entry(inputs.targets[t].view), true, term.loss, term.weight));
+    }
+    for &k in &split.held_silhouettes {
+        let term = super::silhouette_over(inputs, &surface, mesh, &edges, settings, &[k])?;
+        rows.push((
+            entry(inputs.silhouettes[k].view),
+            false,
+            term.loss,
+            term.weight,
+        ));
+    }
+    for (i, refraction, loss, weight) in rows {
+        let sums = if refraction {
+            &mut views[i].1
+        } else {
+            &mut views[i].2
+        };
+        *sums = sums.add(Sums { loss, weight });
+    }
+    Ok(Some(record(views, settings)))
+}
+
+/// The pooled and per-view record of the per-view sums (refraction, silhouette).
+fn record(mut views: Vec<(usize, Sums, Sums)>, settings: &Settings) -> ValidationRecord {
+    views.sort_by_key(|e| e.0);
+    let (wr, ws) = (settings.weight_refraction, settings.weight_silhouette);
+    let pooled = views
+        .iter()
+        .fold((Sums::default(), Sums::default()), |a, e| {
+            (a.0.add(e.1), a.1.add(e.2))
+        });
+    let (r, s) = (pooled.0.mean(wr), pooled.1.mean(ws));
+    ValidationRecord {
         refraction: r,
         silhouette: s,
         total: r + s,
-        views: split.held_targets.len().max(split.held_silhouettes.len()),
-    }))
+        views: views.len(),
+        per_view: views
+            .iter()
+            .map(|&(view, rs, ss)| ViewFit {
+                view,
+                refraction: rs.mean(wr),
+                silhouette: ss.mean(ws),
+            })
+            .collect(),
+    }
 }
 
-/// The stage (index) among the first `upto` whose held-out fit is best, from stage `first` on
-/// (the warm-up's stages carve at the coarsest edge length and are candidates only when no
-/// later stage is done); the last of them when the run holds out nothing. `None` when no stage
-/// is done.
+/// How many standard errors (of the per-view differences) a later stage's gain in held-out
+/// refraction fit must exceed to replace an earlier stage as the result.
+pub const SIGNIFICANT_T: f64 = 3.0;
+
+/// The stage (index) among the first `upto` that fits the held-out views best, from stage
+/// `first` on (the warm-up's stages carve at the coarsest edge length and are candidates only
+/// when no later stage is done): the stage of lowest total, then each later stage that
+/// [`fits_significantly_better`] than the one chosen so far. The last of them when the run
+/// holds out nothing. `None` when no stage is done.
 pub fn best_stage(stages: &[super::StageReport], first: usize, upto: usize) -> Option<usize> {
     let done = &stages[..upto.min(stages.len())];
     let from = if done.len() > first { first } else { 0 };
-    let scored = (done.iter().enumerate().skip(from))
-        .filter_map(|(i, s)| s.validation.map(|v| (i, v.total)))
-        .filter(|(_, t)| t.is_finite());
-    scored
+    let Some(lowest) = lowest_total(done, from) else {
+        return done.len().checked_sub(1);
+    };
+    let fit = |s: usize| done[s].validation.as_ref();
+    Some(
+        (lowest + 1..done.len()).fold(lowest, |chosen, later| match (fit(chosen), fit(later)) {
+            (Some(c), Some(l)) if fits_significantly_better(c, l) => later,
+            _ => chosen,
+        }),
+    )
+}
+
+/// The stage from `from` on whose held-out total is lowest (finite), if any is validated.
+fn lowest_total(done: &[super::StageReport], from: usize) -> Option<usize> {
+    (done.iter().enumerate().skip(from))
+        .filter_map(|(i, s)| s.validation.as_ref().map(|v| (i, v.total)))
+        .filter(|(_, t)| t.is_finite())
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .map(|(i, _)| i)
-        .or_else(|| done.len().checked_sub(1))
+}
+
+/// Whether `later` fits the same held-out views better than `earlier` beyond the noise between
+/// views: its refraction term lower by more than [`SIGNIFICANT_T`] standard errors of the
+/// per-view differences (a paired comparison), and its silhouette term not higher by as much.
+/// The pooled total can prefer a coarser stage because the held-out masks' outlines, not the
+/// shape, dominate its silhouette term (docs/decisions.md); a finer stage must then earn its
+/// place view by view. False without per-view figures for the same views.
+pub fn fits_significantly_better(earlier: &ValidationRecord, later: &ValidationRecord) -> bool {
+    let (e, l) = (&earlier.per_view, &later.per_view);
+    let same_views = e.len() == l.len() && e.iter().zip(l).all(|(a, b)| a.view == b.view);
+    if !same_views {
+        return false;
+    }
+    let gain = |term: fn(&ViewFit) -> f64| -> Vec<f64> {
+        e.iter().zip(l).map(|(a, b)| term(a) - term(b)).collect()
+    };
+    let refraction = paired_t(&gain(|v| v.refraction));
+    let silhouette = paired_t(&gain(|v| v.silhouette));
+    refraction > SIGNIFICANT_T && silhouette > -SIGNIFICANT_T
+}
+
+/// The paired t statistic of `differences`: their mean over its standard error (±∞ when they
+/// agree exactly and are not all 0; 0 for fewer than two, or any that is not finite).
+fn paired_t(differences: &[f64]) -> f64 {
+    let n = differences.len();
+    if n < 2 || differences.iter().any(|d| !d.is_finite()) {
+        return 0.0;
+    }
+    let mean = differences.iter().sum::<f64>() / n as f64;
+    let variance = differences.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    let standard_error = (variance / n as f64).sqrt();
+    if standard_error > 0.0 {
+        mean / standard_error
+    } else if mean == 0.0 {
+        0.0
+    } else {
+        mean.signum() * f64::INFINITY
+    }
 }
 
 #[cfg(test)]
@@ -172,5 +305,83 @@ mod tests {
         assert_eq!(best_stage(&unvalidated, 0, 3), Some(2));
         let with_nan = vec![stage(0, Some(f64::NAN)), stage(1, Some(0.4))];
         assert_eq!(best_stage(&with_nan, 0, 2), Some(1));
+    }
+
+    /// A record of seven held-out views with these per-view refraction and silhouette terms.
+    fn seven_views(refraction: [f64; 7], silhouette: [f64; 7]) -> ValidationRecord {
+        let views: Vec<(usize, Sums, Sums)> = (0..7)
+            .map(|v| {
+                let sums = |x: f64| Sums {
+                    loss: x,
+                    weight: 1.0,
+                };
+                (5 + 10 * v, sums(refraction[v]), sums(silhouette[v]))
+            })
+            .collect();
+        let mut settings = Settings::preset(super::super::config::Preset::Balanced);
+        (settings.weight_refraction, settings.weight_silhouette) = (1.0, 1.0);
+        record(views, &settings)
+    }
+
+    #[test]
+    fn the_record_pools_the_views_and_keeps_each() {
+        let r = seven_views([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0], [0.5; 7]);
+        assert_eq!(r.views, 7);
+        assert!((r.refraction - 4.0).abs() < 1e-12);
+        assert!((r.total - 4.5).abs() < 1e-12);
+        assert_eq!(r.per_view[2].view, 25);
+        assert_eq!(r.per_view[2].refraction, 3.0);
+    }
+
+    #[test]
+    fn the_paired_t_is_the_mean_difference_over_its_standard_error() {
+        // Mean 2, sample standard deviation 1, three differences: t = 2 / (1 / √3).
+        assert!((paired_t(&[1.0, 2.0, 3.0]) - 2.0 * 3f64.sqrt()).abs() < 1e-12);
+        assert_eq!(paired_t(&[0.5, 0.5]), f64::INFINITY);
+        assert_eq!(paired_t(&[0.0, 0.0]), 0.0);
+        assert_eq!(paired_t(&[1.0]), 0.0);
+        assert_eq!(paired_t(&[1.0, f64::NAN, 2.0]), 0.0);
+    }
+
+    #[test]
+    fn a_finer_stage_replaces_a_lower_total_only_with_a_gain_consistent_over_the_views() {
+        let base_r = [0.020, 0.030, 0.025, 0.018, 0.022, 0.028, 0.021];
+        let base_s = [0.03, 0.05, 0.04, 0.30, 0.04, 0.09, 0.20];
+        let earlier = seven_views(base_r, base_s);
+        // 20 % less refraction misfit in every view, the outlines a little worse: the pooled
+        // total is higher, yet the gain is far beyond the noise between views.
+        let consistent = seven_views(base_r.map(|r| 0.8 * r), base_s.map(|s| s * 1.08));
+        assert!(consistent.total > earlier.total);
+        assert!(fits_significantly_better(&earlier, &consistent));
+        // A lower pooled refraction term from one view only is noise.
+        let mut one_view = base_r.map(|r| 1.01 * r);
+        one_view[1] = 0.010;
+        let one_view = seven_views(one_view, base_s);
+        assert!(one_view.refraction < earlier.refraction);
+        assert!(!fits_significantly_better(&earlier, &one_view));
+        // Consistently worse outlines in every view veto a refraction gain.
+        let bulged = seven_views(base_r.map(|r| 0.8 * r), base_s.map(|s| s + 0.05));
+        assert!(!fits_significantly_better(&earlier, &bulged));
+        // Different views (or none per view: an older checkpoint) are never compared.
+        let mut other = consistent.clone();
+        other.per_view[0].view = 1;
+        assert!(!fits_significantly_better(&earlier, &other));
+        let pooled_only = ValidationRecord {
+            per_view: Vec::new(),
+            ..consistent.clone()
+        };
+        assert!(!fits_significantly_better(&earlier, &pooled_only));
+
+        // In a run: the lowest total (stage 1), then stage 2's consistent gain over it.
+        let stages: Vec<StageReport> = [earlier.clone(), earlier, consistent]
+            .into_iter()
+            .enumerate()
+            .map(|(i, v)| StageReport {
+                validation: Some(v),
+                ..stage(i, None)
+            })
+            .collect();
+        assert_eq!(best_stage(&stages, 1, 3), Some(2));
+        assert_eq!(best_stage(&stages, 1, 2), Some(1));
     }
 }
