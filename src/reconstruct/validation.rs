@@ -4,6 +4,8 @@
 //! `pixel_stride`-th pixel), so a run knows without ground truth when a stage made it worse; the
 //! stage that fits them best becomes the result.
 
+use std::collections::BTreeMap;
+
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
@@ -109,6 +111,13 @@ impl Sums {
         }
     }
 
+    fn of(term: &super::TermValue) -> Sums {
+        Sums {
+            loss: term.loss,
+            weight: term.weight,
+        }
+    }
+
     fn add(self, other: Sums) -> Sums {
         Sums {
             loss: self.loss + other.loss,
@@ -129,59 +138,35 @@ pub fn validate_mesh(
     }
     let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
     let edges = mesh.interior_edges();
-    let mut views: Vec<(usize, Sums, Sums)> = Vec::new();
-    let mut entry = |view: usize| -> usize {
-        match views.iter().position(|e| e.0 == view) {
-            Some(i) => i,
-            None => {
-                views.push((view, Sums::default(), Sums::default()));
-                views.len() - 1
-            }
-        }
-    };
-    let mut rows = Vec::new();
+    // Per view (sorted): the refraction and the silhouette term's sums.
+    let mut views: BTreeMap<usize, (Sums, Sums)> = BTreeMap::new();
     for &t in &split.held_targets {
         let term = super::refraction_over(inputs, &surface, mesh, settings, &[(t, 0)])?;
-        rows.push((entry(inputs.targets[t].view), true, term.loss, term.weight));
+        let sums = &mut views.entry(inputs.targets[t].view).or_default().0;
+        *sums = sums.add(Sums::of(&term));
     }
     for &k in &split.held_silhouettes {
         let term = super::silhouette_over(inputs, &surface, mesh, &edges, settings, &[k])?;
-        rows.push((
-            entry(inputs.silhouettes[k].view),
-            false,
-            term.loss,
-            term.weight,
-        ));
+        let sums = &mut views.entry(inputs.silhouettes[k].view).or_default().1;
+        *sums = sums.add(Sums::of(&term));
     }
-    for (i, refraction, loss, weight) in rows {
-        let sums = if refraction {
-            &mut views[i].1
-        } else {
-            &mut views[i].2
-        };
-        *sums = sums.add(Sums { loss, weight });
-    }
-    Ok(Some(record(views, settings)))
+    Ok(Some(record(&views, settings)))
 }
 
-/// The pooled and per-view record of the per-view sums (refraction, silhouette).
-fn record(mut views: Vec<(usize, Sums, Sums)>, settings: &Settings) -> ValidationRecord {
-    views.sort_by_key(|e| e.0);
+/// The pooled and per-view record of each view's (refraction, silhouette) sums.
+fn record(views: &BTreeMap<usize, (Sums, Sums)>, settings: &Settings) -> ValidationRecord {
     let (wr, ws) = (settings.weight_refraction, settings.weight_silhouette);
-    let pooled = views
-        .iter()
-        .fold((Sums::default(), Sums::default()), |a, e| {
-            (a.0.add(e.1), a.1.add(e.2))
-        });
+    let pooled = (views.values()).fold((Sums::default(), Sums::default()), |a, e| {
+        (a.0.add(e.0), a.1.add(e.1))
+    });
     let (r, s) = (pooled.0.mean(wr), pooled.1.mean(ws));
     ValidationRecord {
         refraction: r,
         silhouette: s,
         total: r + s,
         views: views.len(),
-        per_view: views
-            .iter()
-            .map(|&(view, rs, ss)| ViewFit {
+        per_view: (views.iter())
+            .map(|(&view, &(rs, ss))| ViewFit {
                 view,
                 refraction: rs.mean(wr),
                 silhouette: ss.mean(ws),
@@ -309,18 +294,18 @@ mod tests {
 
     /// A record of seven held-out views with these per-view refraction and silhouette terms.
     fn seven_views(refraction: [f64; 7], silhouette: [f64; 7]) -> ValidationRecord {
-        let views: Vec<(usize, Sums, Sums)> = (0..7)
+        let views: BTreeMap<usize, (Sums, Sums)> = (0..7)
             .map(|v| {
                 let sums = |x: f64| Sums {
                     loss: x,
                     weight: 1.0,
                 };
-                (5 + 10 * v, sums(refraction[v]), sums(silhouette[v]))
+                (5 + 10 * v, (sums(refraction[v]), sums(silhouette[v])))
             })
             .collect();
         let mut settings = Settings::preset(super::super::config::Preset::Balanced);
         (settings.weight_refraction, settings.weight_silhouette) = (1.0, 1.0);
-        record(views, &settings)
+        record(&views, &settings)
     }
 
     #[test]
