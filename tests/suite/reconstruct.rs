@@ -337,3 +337,47 @@ fn refraction_carries_the_shape_beyond_the_hull() {
 /// refraction weight under test; no averaging of the iterates: 60 iterations from the hull end
 /// ahead of their mean, 0.169 mm against 0.195).
 const PEBBLE_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.06\nfinal_edge = 0.04\niterations = 60\nrefraction_views = 4\naverage_share = 0.0\n";
+
+/// A run that starts from the true shape has nothing to gain: its stages remesh it coarser and
+/// fit the held-out views worse, so the result is the start mesh, and the run says so.
+#[test]
+fn a_run_whose_every_stage_fits_worse_than_its_start_hands_back_the_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    small_scan(&scan);
+    let config = dir.path().join("c.toml");
+    std::fs::write(&config, format!("{CONFIG}validation_share = 0.25\n")).unwrap();
+    let out = dir.path().join("out");
+    let truth = scan.join("ground_truth.ply");
+    let mut args = reconstruct_args(&scan, &config, &out);
+    args.extend(["--init".into(), truth.to_str().unwrap().into()]);
+    let o = glasscan(&args);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        stdout.contains("-> ") && stdout.contains(": the start mesh,"),
+        "{stdout}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["result_stage"], 0, "{report}");
+    let warned = report["warnings"].as_array().unwrap().iter().any(|w| {
+        w.as_str()
+            .unwrap()
+            .contains("fits the held-out views better than every stage")
+    });
+    assert!(warned, "{}", report["warnings"]);
+    let read = |p: &Path| glasscan::mesh::io::read_mesh(p).unwrap();
+    let (result, start) = (read(&out.join("result.ply")), read(&truth));
+    assert_eq!(result.faces, start.faces);
+    assert_eq!(result.positions, start.positions);
+    // The stages did make it worse, by the truth.
+    let last = report["stages"].as_array().unwrap().len() - 1;
+    let e = |mesh: &Path| {
+        glasscan::eval::evaluate(&read(mesh), &start, &Default::default())
+            .unwrap()
+            .accuracy_mm
+    };
+    let stage = e(&out.join(format!("stage_{last:02}.ply")));
+    assert!(stage > 0.05, "the last stage is {stage} mm from the truth");
+}
