@@ -326,6 +326,16 @@ mod tests {
         record(&views, &settings)
     }
 
+    /// Stages 0, 1, … with these held-out fits.
+    fn validated_stages<const N: usize>(fits: [ValidationRecord; N]) -> Vec<StageReport> {
+        (fits.into_iter().enumerate())
+            .map(|(i, v)| StageReport {
+                validation: Some(v),
+                ..stage(i, None)
+            })
+            .collect()
+    }
+
     #[test]
     fn the_record_pools_the_views_and_keeps_each() {
         let r = seven_views([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0], [0.5; 7]);
@@ -376,14 +386,7 @@ mod tests {
         assert!(!fits_significantly_better(&earlier, &pooled_only));
 
         // In a run: the lowest total (stage 1), then stage 2's consistent gain over it.
-        let stages: Vec<StageReport> = [earlier.clone(), earlier, consistent]
-            .into_iter()
-            .enumerate()
-            .map(|(i, v)| StageReport {
-                validation: Some(v),
-                ..stage(i, None)
-            })
-            .collect();
+        let stages = validated_stages([earlier.clone(), earlier, consistent]);
         assert_eq!(best_stage(&stages, 1, 3), Some(2));
         assert_eq!(best_stage(&stages, 1, 2), Some(1));
     }
@@ -392,14 +395,7 @@ mod tests {
     fn the_start_mesh_is_the_result_only_when_it_fits_better_than_every_stage() {
         let r = [0.020, 0.030, 0.025, 0.018, 0.022, 0.028, 0.021];
         let sil = [0.03, 0.05, 0.04, 0.30, 0.04, 0.09, 0.20];
-        let stages: Vec<StageReport> = [seven_views(r, sil), seven_views(r.map(|x| 0.9 * x), sil)]
-            .into_iter()
-            .enumerate()
-            .map(|(i, v)| StageReport {
-                validation: Some(v),
-                ..stage(i, None)
-            })
-            .collect();
+        let stages = validated_stages([seven_views(r, sil), seven_views(r.map(|x| 0.9 * x), sil)]);
         // A start mesh the stages improved on, one about as good, one far better in every view.
         let worse = seven_views(r.map(|x| 1.5 * x), sil);
         let level = seven_views(r.map(|x| 0.9 * x), sil.map(|x| 0.95 * x));
