@@ -26,7 +26,7 @@ use crate::mesh::TriMesh;
 use crate::reconstruct::config::{Preset, Settings};
 use crate::reconstruct::pipeline::{reconstruct_scan, Job};
 use crate::reconstruct::plot::time_accuracy_plot;
-use crate::reconstruct::validation::choose_result;
+use crate::reconstruct::validation::best_stage;
 use crate::reconstruct::{self, stage_path, Existing, Progress, Start};
 use crate::scan::Scan;
 use crate::simulate::{monitor_covers, simulate, SimulateOptions, Transport};
@@ -187,8 +187,7 @@ pub struct BenchRun {
     /// Stages run of the preset's; fewer for a `drt` run cut at the budget.
     pub stages_done: usize,
     /// The stage evaluated: the one within the budget that fits the held-out views best (the
-    /// last when none are held out), counted from 1; 0 for the start mesh, when it fits them
-    /// better than every stage.
+    /// last when none are held out), counted from 1.
     #[serde(default)]
     pub result_stage: usize,
     pub stages: usize,
@@ -439,16 +438,10 @@ fn run_one(
     let ck = reconstruct_scan(job, progress, &stop)?.finished.checkpoint;
     let (curve, within, seconds) =
         stage_curve(&hull, truth, seconds_hull, &ck.stages, budget, dir)?;
-    // The result is the stage within the budget that fits the held-out views best (or the start
-    // mesh, when it fits them better than every stage).
-    let s = choose_result(
-        ck.start_validation.as_ref(),
-        &ck.stages,
-        settings.warmup_stages,
-        within,
-    )
-    .context("the run finished no stage")?;
-    let mesh = read_mesh(&s.map_or(dir.join(&ck.start_mesh), |s| stage_path(dir, s)))?;
+    // The result is the stage within the budget that fits the held-out views best.
+    let s = best_stage(&ck.stages, settings.warmup_stages, within)
+        .context("the run finished no stage")?;
+    let mesh = read_mesh(&stage_path(dir, s))?;
     let e: EvalReport = evaluate(&mesh, truth, &EvalOptions::default())?;
     let f = |t: f64| {
         e.fscores
@@ -465,7 +458,7 @@ fn run_one(
         seconds,
         seconds_hull,
         stages_done: within,
-        result_stage: s.map_or(0, |s| s + 1),
+        result_stage: s + 1,
         stages: settings.total_stages(),
         accuracy_mm: e.accuracy_mm,
         completeness_mm: e.completeness_mm,

@@ -128,14 +128,12 @@ fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
         );
     }
     outln!(
-        "reconstructed {} ({} preset, {} stages) -> {}: {}, {} faces, in {:.1} s of stages",
+        "reconstructed {} ({} preset, {} stages) -> {}: stage {}, {} faces, in {:.1} s of stages",
         a.scan.display(),
         ck.settings.preset,
         ck.settings.total_stages(),
         a.output.join("result.ply").display(),
-        outcome
-            .result_stage
-            .map_or("the start mesh".into(), |s| format!("stage {}", s + 1)),
+        outcome.result_stage + 1,
         outcome.result.faces.len(),
         ck.stages.iter().map(|s| s.seconds).sum::<f64>()
     );

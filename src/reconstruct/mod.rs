@@ -97,10 +97,6 @@ pub struct Checkpoint {
     pub thin_part_mm: Option<f64>,
     /// The file (in the output folder) of the mesh the run started from.
     pub start_mesh: String,
-    /// The start mesh's fit to the held-out views (none held out, or a checkpoint written
-    /// before it was recorded: `None`).
-    #[serde(default)]
-    pub start_validation: Option<ValidationRecord>,
     pub stages_done: usize,
     pub history: Vec<IterationRecord>,
     pub stages: Vec<StageReport>,
@@ -151,12 +147,12 @@ pub fn run(
     stop: &AtomicBool,
 ) -> Result<Finished> {
     settings.check().map_err(anyhow::Error::msg)?;
-    let split = Split::new(inputs, settings.validation_share);
     let (mut ck, mut mesh) = match existing {
         Existing::Run(ck) => continue_run(*ck, settings, out)?,
-        Existing::Nothing => begin_run((inputs, &split), start, settings, out)?,
+        Existing::Nothing => begin_run(inputs, start, settings, out)?,
     };
     let stages = settings.total_stages();
+    let split = Split::new(inputs, settings.validation_share);
     while ck.stages_done < stages {
         if stop.load(Ordering::SeqCst) {
             return Ok(Finished {
@@ -176,10 +172,10 @@ pub fn run(
     })
 }
 
-/// The start mesh of a fresh run, written to `out` with its fit to the held-out views and
-/// committed as a checkpoint with no stage done.
+/// The start mesh of a fresh run, written to `out` and committed as a checkpoint with no stage
+/// done.
 fn begin_run(
-    (inputs, split): (&Inputs, &Split),
+    inputs: &Inputs,
     start: Start,
     settings: &Settings,
     out: &Path,
@@ -197,7 +193,6 @@ fn begin_run(
         settings: settings.clone(),
         diagonal_mm: mesh.bbox_diagonal(),
         thin_part_mm: thickness_quantile(&mesh, THIN_SHARE)?,
-        start_validation: validate_mesh(inputs, split, &mesh, settings)?,
         start_mesh: name.into(),
         stages_done: 0,
         history: Vec::new(),
@@ -618,7 +613,6 @@ mod tests {
             settings: Settings::preset(Preset::Balanced),
             diagonal_mm: 240.0,
             thin_part_mm,
-            start_validation: None,
             start_mesh: "start.ply".into(),
             stages_done: 0,
             history: Vec::new(),

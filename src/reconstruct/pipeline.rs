@@ -10,7 +10,7 @@ use anyhow::Result;
 
 use super::config::Settings;
 use super::plot::loss_plot;
-use super::validation::{choose_result, ValidationRecord};
+use super::validation::best_stage;
 use super::{load_inputs, run, stage_path, Existing, Finished, Progress, Start};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::mesh::io::{read_mesh, write_mesh};
@@ -35,10 +35,9 @@ pub struct Job<'a> {
 /// What [`reconstruct_scan`] hands back.
 pub struct Outcome {
     pub finished: Finished,
-    /// The result: the stage whose mesh fits the held-out views best, `None` for the start mesh
-    /// when it fits them significantly better than every stage (the last stage when none
+    /// The result: the stage whose mesh fits the held-out views best (the last stage when none
     /// are held out, or when the run was stopped), and its mesh.
-    pub result_stage: Option<usize>,
+    pub result_stage: usize,
     pub result: TriMesh,
     /// Against `SCAN/ground_truth.ply`, when the scan has one and the run is complete.
     pub evaluation: Option<EvalReport>,
@@ -71,15 +70,14 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     if !finished.complete {
         // A stopped run has no result yet: its last stage stands in.
         return Ok(Outcome {
-            result_stage: finished.checkpoint.stages_done.checked_sub(1),
+            result_stage: finished.checkpoint.stages_done.saturating_sub(1),
             result: finished.mesh.clone(),
             finished,
             evaluation: None,
             warnings,
         });
     }
-    let mut warnings = warnings;
-    let (result_stage, result) = result_of(out, &finished, progress, &mut warnings)?;
+    let (result_stage, result) = choose_result(out, &finished, progress)?;
     let evaluation = evaluate_against_truth(scan, &result)?;
     let report = Report {
         views: views.len(),
@@ -98,52 +96,36 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     })
 }
 
-/// The result ([`choose_result`]) and its mesh; says so when it is not the last stage, and
-/// warns (in `warnings` too) when it is the start mesh.
-fn result_of(
+/// The stage whose mesh fits the held-out views best ([`best_stage`]), and that mesh; says so
+/// when it is not the last stage.
+fn choose_result(
     out: &Path,
     finished: &Finished,
     progress: &dyn Progress,
-    warnings: &mut Vec<String>,
-) -> Result<(Option<usize>, TriMesh)> {
-    let ck = &finished.checkpoint;
-    let (stages, last) = (&ck.stages, ck.stages.len().saturating_sub(1));
-    let first = ck.settings.warmup_stages;
-    let fit = |v: Option<&ValidationRecord>| {
-        v.map_or("-".into(), |v| {
+) -> Result<(usize, TriMesh)> {
+    let stages = &finished.checkpoint.stages;
+    let last = stages.len().saturating_sub(1);
+    let first = finished.checkpoint.settings.warmup_stages;
+    let best = best_stage(stages, first, stages.len()).unwrap_or(last);
+    if best == last {
+        return Ok((last, finished.mesh.clone()));
+    }
+    let fit = |s: usize| {
+        stages[s].validation.as_ref().map_or("-".into(), |v| {
             format!(
                 "refraction {:.4e}, silhouette {:.4e}",
                 v.refraction, v.silhouette
             )
         })
     };
-    let of_stage = |s: usize| fit(stages[s].validation.as_ref());
-    match choose_result(ck.start_validation.as_ref(), stages, first, stages.len()) {
-        Some(None) => {
-            let text = format!(
-                "result: the start mesh ({}): it fits the held-out views better than every stage \
-                 ({}; after the last stage {}) — the data may not fit the model: check the \
-                 refractive index, the calibration and the decode (decoded/preview/)",
-                ck.start_mesh,
-                fit(ck.start_validation.as_ref()),
-                of_stage(last)
-            );
-            progress.note(&format!("warning: {text}"));
-            warnings.push(text);
-            Ok((None, read_mesh(&out.join(&ck.start_mesh))?))
-        }
-        Some(Some(best)) if best != last => {
-            progress.note(&format!(
-                "result: stage {} of {}, whose mesh fits the held-out views best ({}; after the last stage {})",
-                best + 1,
-                stages.len(),
-                of_stage(best),
-                of_stage(last)
-            ));
-            Ok((Some(best), read_mesh(&stage_path(out, best))?))
-        }
-        _ => Ok((Some(last), finished.mesh.clone())),
-    }
+    progress.note(&format!(
+        "result: stage {} of {}, whose mesh fits the held-out views best ({}; after the last stage {})",
+        best + 1,
+        stages.len(),
+        fit(best),
+        fit(last)
+    ));
+    Ok((best, read_mesh(&stage_path(out, best))?))
 }
 
 /// The result against the scan's `ground_truth.ply`, if it has one.
@@ -159,7 +141,7 @@ fn evaluate_against_truth(scan: &Scan, result: &TriMesh) -> Result<Option<EvalRe
 /// What `report.json` says beside the checkpoint's figures.
 struct Report<'a> {
     views: usize,
-    result_stage: Option<usize>,
+    result_stage: usize,
     evaluation: Option<&'a EvalReport>,
     warnings: &'a [String],
     t0: Instant,
@@ -176,7 +158,7 @@ fn write_results(out: &Path, finished: &Finished, result: &TriMesh, r: &Report) 
         "seconds_total": r.t0.elapsed().as_secs_f64(),
         "seconds_stages": ck.stages.iter().map(|s| s.seconds).sum::<f64>(),
         "stages": ck.stages,
-        "result_stage": r.result_stage.map_or(0, |s| s + 1),
+        "result_stage": r.result_stage + 1,
         "result_mesh": quality(result),
         "evaluation_against_ground_truth": r.evaluation.map(|e| e.to_json()),
         "warnings": r.warnings,

@@ -199,24 +199,6 @@ pub fn best_stage(stages: &[super::StageReport], first: usize, upto: usize) -> O
     )
 }
 
-/// The result of a run whose first `upto` stages are done: [`best_stage`], or the start mesh
-/// (`Some(None)`) when it fits the held-out views significantly better than that stage
-/// ([`fits_significantly_better`]) — every stage made the mesh worse. `None` when no stage is
-/// done.
-pub fn choose_result(
-    start: Option<&ValidationRecord>,
-    stages: &[super::StageReport],
-    first: usize,
-    upto: usize,
-) -> Option<Option<usize>> {
-    let best = best_stage(stages, first, upto)?;
-    let worse_than_start = match (stages[best].validation.as_ref(), start) {
-        (Some(b), Some(s)) => fits_significantly_better(b, s),
-        _ => false,
-    };
-    Some((!worse_than_start).then_some(best))
-}
-
 /// The stage from `from` on whose held-out total is lowest (finite), if any is validated.
 fn lowest_total(done: &[super::StageReport], from: usize) -> Option<usize> {
     (done.iter().enumerate().skip(from))
@@ -226,8 +208,8 @@ fn lowest_total(done: &[super::StageReport], from: usize) -> Option<usize> {
         .map(|(i, _)| i)
 }
 
-/// Whether `later` fits the same held-out views better than `earlier` (a stage, or the start
-/// mesh) beyond the noise between views: its refraction term lower by more than [`SIGNIFICANT_T`] standard errors of the
+/// Whether `later` fits the same held-out views better than `earlier` beyond the noise between
+/// views: its refraction term lower by more than [`SIGNIFICANT_T`] standard errors of the
 /// per-view differences (a paired comparison), and its silhouette term not higher by as much.
 /// The pooled total can prefer a coarser stage because the held-out masks' outlines, not the
 /// shape, dominate its silhouette term (docs/decisions.md); a finer stage must then earn its
@@ -389,21 +371,5 @@ mod tests {
         let stages = validated_stages([earlier.clone(), earlier, consistent]);
         assert_eq!(best_stage(&stages, 1, 3), Some(2));
         assert_eq!(best_stage(&stages, 1, 2), Some(1));
-    }
-
-    #[test]
-    fn the_start_mesh_is_the_result_only_when_it_fits_better_than_every_stage() {
-        let r = [0.020, 0.030, 0.025, 0.018, 0.022, 0.028, 0.021];
-        let sil = [0.03, 0.05, 0.04, 0.30, 0.04, 0.09, 0.20];
-        let stages = validated_stages([seven_views(r, sil), seven_views(r.map(|x| 0.9 * x), sil)]);
-        // A start mesh the stages improved on, one about as good, one far better in every view.
-        let worse = seven_views(r.map(|x| 1.5 * x), sil);
-        let level = seven_views(r.map(|x| 0.9 * x), sil.map(|x| 0.95 * x));
-        let better = seven_views(r.map(|x| 0.5 * x), sil);
-        assert_eq!(choose_result(Some(&worse), &stages, 0, 2), Some(Some(1)));
-        assert_eq!(choose_result(Some(&level), &stages, 0, 2), Some(Some(1)));
-        assert_eq!(choose_result(Some(&better), &stages, 0, 2), Some(None));
-        assert_eq!(choose_result(None, &stages, 0, 2), Some(Some(1)));
-        assert_eq!(choose_result(Some(&better), &stages, 0, 0), None);
     }
 }
