@@ -310,6 +310,7 @@ fn refraction_carries_the_shape_beyond_the_hull() {
         let report: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
                 .unwrap();
+        assert_held_out_fit_per_view(&report);
         (
             report["evaluation_against_ground_truth"]["accuracy_mm"]
                 .as_f64()
@@ -331,6 +332,26 @@ fn refraction_carries_the_shape_beyond_the_hull() {
         with < MARGIN * faint,
         "{with} against {faint} with a 1000× smaller weight"
     );
+}
+
+/// Every stage of the report has its held-out fit view by view: as many views as it says, each
+/// with finite terms, whose mean is the pooled term when the views weigh alike (within 50 %).
+fn assert_held_out_fit_per_view(report: &serde_json::Value) {
+    for stage in report["stages"].as_array().unwrap() {
+        let v = &stage["validation"];
+        let per_view = v["per_view"].as_array().unwrap();
+        assert!(per_view.len() >= 2, "{v}");
+        assert_eq!(per_view.len() as u64, v["views"].as_u64().unwrap(), "{v}");
+        let terms =
+            |key: &str| -> Vec<f64> { per_view.iter().map(|f| f[key].as_f64().unwrap()).collect() };
+        for key in ["refraction", "silhouette"] {
+            let t = terms(key);
+            assert!(t.iter().all(|x| x.is_finite() && *x >= 0.0), "{v}");
+            let mean = t.iter().sum::<f64>() / t.len() as f64;
+            let pooled = v[key].as_f64().unwrap();
+            assert!((mean - pooled).abs() <= 0.5 * pooled, "{key}: {v}");
+        }
+    }
 }
 
 /// A short schedule for the pebble test (no warm-up: its DRT weights would not follow the
