@@ -106,8 +106,17 @@ pub fn loss_plot(path: &Path, ck: &Checkpoint) -> Result<()> {
     )
 }
 
-/// (iteration, held-out fit) at the end of each stage after the warm-up.
-fn validation_points(ck: &Checkpoint) -> Vec<(f64, f64)> {
+/// The fit to the held-out views at the end of a stage: its iteration, the total and the
+/// refraction term (which decides between stages, docs/decisions.md).
+#[derive(Clone, Copy)]
+struct HeldOutPoint {
+    iteration: f64,
+    total: f64,
+    refraction: f64,
+}
+
+/// The held-out fit at the end of each stage after the warm-up.
+fn validation_points(ck: &Checkpoint) -> Vec<HeldOutPoint> {
     let mut end = 0;
     let mut points = Vec::new();
     for st in &ck.stages {
@@ -116,7 +125,11 @@ fn validation_points(ck: &Checkpoint) -> Vec<(f64, f64)> {
             st.stage >= ck.settings.warmup_stages,
             st.validation.as_ref(),
         ) {
-            points.push(((end.max(1) - 1) as f64, v.total));
+            points.push(HeldOutPoint {
+                iteration: (end.max(1) - 1) as f64,
+                total: v.total,
+                refraction: v.refraction,
+            });
         }
     }
     points
@@ -128,7 +141,7 @@ struct Panels<'a> {
     main: &'a [IterationRecord],
     /// Iteration index of `main`'s first record.
     offset: usize,
-    validation: &'a [(f64, f64)],
+    validation: &'a [HeldOutPoint],
 }
 
 /// The warm-up panel (if any) beside the main one.
@@ -164,14 +177,14 @@ fn loss_panels<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, p: &Panels) ->
 fn loss_panel<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     (records, offset): (&[IterationRecord], usize),
-    validation: &[(f64, f64)],
+    validation: &[HeldOutPoint],
     title: &str,
     log: bool,
 ) -> Result<()> {
     let values = records
         .iter()
         .flat_map(|r| TERMS.iter().map(move |t| (t.1)(r)))
-        .chain(validation.iter().map(|p| p.1))
+        .chain(validation.iter().flat_map(|p| [p.total, p.refraction]))
         .filter(|v| v.is_finite() && (!log || *v > 0.0));
     let (lo, hi) = values.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
         (a.min(v), b.max(v))
@@ -205,7 +218,7 @@ fn loss_panel<DB: DrawingBackend>(
 fn draw_loss_series<'a, DB, Y>(
     chart: &mut ChartContext<'a, DB, Cartesian2d<plotters::coord::types::RangedCoordf64, Y>>,
     (records, offset): (&[IterationRecord], usize),
-    validation: &[(f64, f64)],
+    validation: &[HeldOutPoint],
     keep: impl Fn(f64) -> bool,
 ) -> Result<()>
 where
@@ -245,17 +258,29 @@ where
             .label(name)
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(2)));
     }
-    if !validation.is_empty() {
-        let colour = RGBColor(230, 130, 0);
-        let points = validation
-            .iter()
-            .copied()
+    let colour = RGBColor(230, 130, 0);
+    let held_out = [
+        (
+            "held-out views: total",
+            (|p| p.total) as fn(&HeldOutPoint) -> f64,
+            true,
+        ),
+        ("held-out views: refraction", |p| p.refraction, false),
+    ];
+    for (name, value, filled) in held_out.into_iter().filter(|_| !validation.is_empty()) {
+        let style = if filled {
+            colour.filled()
+        } else {
+            colour.stroke_width(2)
+        };
+        let points = (validation.iter())
+            .map(|p| (p.iteration, value(p)))
             .filter(|(_, v)| v.is_finite() && keep(*v));
         chart
-            .draw_series(points.map(|p| Circle::new(p, 5, colour.filled())))
+            .draw_series(points.map(|p| Circle::new(p, 5, style)))
             .map_err(plot_err)?
-            .label("held-out views (after each stage)")
-            .legend(move |(x, y)| Circle::new((x + 9, y), 5, colour.filled()));
+            .label(name)
+            .legend(move |(x, y)| Circle::new((x + 9, y), 5, style));
     }
     draw_legend(chart)
 }
