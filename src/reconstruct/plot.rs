@@ -115,6 +115,9 @@ struct HeldOutPoint {
     refraction: f64,
 }
 
+/// A series of held-out points: its legend, the value it shows and its marker.
+type HeldOutSeries = (&'static str, fn(&HeldOutPoint) -> f64, ShapeStyle);
+
 /// The held-out fit at the end of each stage after the warm-up.
 fn validation_points(ck: &Checkpoint) -> Vec<HeldOutPoint> {
     let mut end = 0;
@@ -259,20 +262,21 @@ where
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], colour.stroke_width(2)));
     }
     let colour = RGBColor(230, 130, 0);
-    let held_out = [
+    let held_out: [HeldOutSeries; 2] = [
+        ("held-out views: total", |p| p.total, colour.filled()),
         (
-            "held-out views: total",
-            (|p| p.total) as fn(&HeldOutPoint) -> f64,
-            true,
+            "held-out views: refraction",
+            |p| p.refraction,
+            colour.stroke_width(2),
         ),
-        ("held-out views: refraction", |p| p.refraction, false),
     ];
-    for (name, value, filled) in held_out.into_iter().filter(|_| !validation.is_empty()) {
-        let style = if filled {
-            colour.filled()
-        } else {
-            colour.stroke_width(2)
-        };
+    // No held-out views: no points and no legend entries.
+    let held_out = if validation.is_empty() {
+        &[][..]
+    } else {
+        &held_out[..]
+    };
+    for &(name, value, style) in held_out {
         let points = (validation.iter())
             .map(|p| (p.iteration, value(p)))
             .filter(|(_, v)| v.is_finite() && keep(*v));
