@@ -245,6 +245,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         robust: a.robust,
         min_cos: 0.0,
         footprint: a.footprint,
+        bit_weight: 0.0,
     };
     eprintln!(
         "bench gradient: {} ({} faces), {} views of {} ({} left out by decode), targets loaded in {load_s:.1} s",

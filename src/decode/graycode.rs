@@ -115,3 +115,86 @@ pub fn decode_view(
         })
         .collect()
 }
+
+/// The measured contrasts (pattern − inverse)/(white − black) of the two Gray bits around each
+/// pixel's decoded cell, per axis: the bit whose stripes are twice the cell wide (the last one
+/// the cell keeps) and the one whose stripes are the cell's width (the first one it drops); NaN
+/// where a bit does not exist or the pixel has no white − black range. Pixels in the order of
+/// `decoded` (`images`, `white`, `black` as in [`decode_view`]).
+pub fn bit_contrasts(
+    images: &[&[u8]],
+    white: &[u8],
+    black: &[u8],
+    code: &GrayCode,
+    decoded: &[PixelDecode],
+) -> Vec<[f32; 4]> {
+    let (nc, nr) = (code.column_bits(), code.row_bits());
+    decoded
+        .par_iter()
+        .enumerate()
+        .map(|(p, d)| {
+            let range = white[p] as f32 - black[p] as f32;
+            // Bit `bit` (from the least significant) of the axis whose images start at `first`.
+            let contrast = |first: usize, bits: u32, bit: Option<u32>| match bit {
+                Some(b) if b < bits && range > 0.0 => {
+                    let i = first + 2 * (bits - 1 - b) as usize;
+                    (images[i][p] as f32 - images[i + 1][p] as f32) / range
+                }
+                _ => f32::NAN,
+            };
+            let axis = |a: &AxisDecode, first: usize, bits: u32| {
+                let last = a.cell.trailing_zeros();
+                [
+                    contrast(first, bits, Some(last)),
+                    contrast(first, bits, last.checked_sub(1)),
+                ]
+            };
+            let (u, v) = (axis(&d.u, 0, nc), axis(&d.v, 2 * nc as usize, nr));
+            [u[0], u[1], v[0], v[1]]
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bit_contrasts_read_the_bits_around_the_cell() {
+        // An 8×2 monitor: 3 column bits, 1 row bit. One pixel whose column bits 2 and 1 (from
+        // the least significant) are clear and bit 0 is grey, white 200, black 0.
+        let code = GrayCode {
+            width: 8,
+            height: 2,
+        };
+        let images: Vec<Vec<u8>> = vec![
+            vec![180], // column bit 2: pattern
+            vec![20],  // inverse
+            vec![40],  // column bit 1
+            vec![160],
+            vec![110], // column bit 0: (110 − 90)/200 = 0.1, below 0.3 → unreliable
+            vec![90],
+            vec![200], // row bit 0
+            vec![0],
+        ];
+        let refs: Vec<&[u8]> = images.iter().map(|v| &v[..]).collect();
+        let test = BitTest {
+            white_threshold: 5,
+            min_contrast: 0.3,
+        };
+        let d = decode_view(&refs, &[200], &[0], &code, test);
+        assert_eq!((d[0].u.cell, d[0].v.cell), (2, 1));
+        let c = bit_contrasts(&refs, &[200], &[0], &code, &d)[0];
+        // u: the cell keeps bits 2 and 1 (last: bit 1, −0.6), drops bit 0 (0.1); v: every bit
+        // kept (bit 0, 1.0), none dropped.
+        assert!(
+            (c[0] + 0.6).abs() < 1e-6 && (c[1] - 0.1).abs() < 1e-6,
+            "{c:?}"
+        );
+        assert!((c[2] - 1.0).abs() < 1e-6 && c[3].is_nan(), "{c:?}");
+        // No white − black range: nothing to measure.
+        assert!(bit_contrasts(&refs, &[0], &[0], &code, &d)[0]
+            .iter()
+            .all(|x| x.is_nan()));
+    }
+}

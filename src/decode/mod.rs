@@ -21,7 +21,7 @@ use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
 use coherence::{background_share, fine_bits, FineDiffs};
-use graycode::{decode_view, BitTest, PixelDecode};
+use graycode::{bit_contrasts, decode_view, BitTest, PixelDecode};
 use mask::{clean, pixels_at_monitor_edge, raw_mask, BackgroundPixel, MaskOptions, ViewPixels};
 
 /// Thresholds of decoding.
@@ -63,6 +63,24 @@ pub struct DecodedCapture {
     pub white: Vec<u8>,
     /// The fine bits' pattern − inverse differences (the mask's edge rule), when asked for.
     pub fine: Option<FineDiffs>,
+    /// The contrasts of the bits around each pixel's cell ([`graycode::bit_contrasts`]).
+    pub contrasts: Vec<[f32; 4]>,
+}
+
+/// The bit contrasts of the object pixels with a decoded monitor point, encoded for
+/// `view_NNN_bits.png` (absent elsewhere).
+fn object_contrasts(cap: &DecodedCapture, mask: &[u8], monitor: &[Vec4w]) -> Vec<Vec4w> {
+    cap.contrasts
+        .iter()
+        .zip(mask.iter().zip(monitor))
+        .map(|(c, (&m, t))| {
+            if m == 255 && t[0] != NONE {
+                Vec4w::from(c.map(form::encode_contrast))
+            } else {
+                Vec4w::from([NONE; 4])
+            }
+        })
+        .collect()
 }
 
 /// Reads and decodes the captures in `dir` (with the phase-shift images if `phase` is given),
@@ -118,6 +136,7 @@ pub fn decode_captures(
     if let Some(p) = phase {
         phase::refine(&mut pixels, &data[n + 2..], p, o.min_modulation);
     }
+    let contrasts = bit_contrasts(&data[..n], white, black, code, &pixels);
     let lit = white
         .iter()
         .zip(black)
@@ -130,6 +149,7 @@ pub fn decode_captures(
         lit,
         white: white.to_vec(),
         fine,
+        contrasts,
     })
 }
 
@@ -358,12 +378,14 @@ impl ViewWriter<'_> {
                 preview.push(Vec3b::from([g, g, g]));
             }
         }
+        let contrasts = object_contrasts(cap, &mask, &monitor);
         form::write_view(
             out,
             k,
             (cap.width as u32, cap.height as u32),
             &mask,
             &monitor,
+            Some(&contrasts),
         )?;
         write_pixels(
             &out.join("preview").join(format!("view_{k:03}.png")),

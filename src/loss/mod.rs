@@ -1,11 +1,13 @@
 //! The losses of the optimisation and their exact gradients with respect to every vertex
-//! position (docs/architecture.md §4–5), written by hand: [`refraction`] (decoded monitor points),
+//! position (docs/architecture.md §4–5), written by hand: [`refraction`] (decoded monitor points,
+//! with [`bits`]: the measured Gray bits),
 //! [`silhouette`] (contour edges against the masks) and [`smoothness`] (dihedral angles).
 //!
 //! Each chunk of rays or edges is differentiated on one thread into [`Contributions`], which are
 //! summed into an [`Accumulator`] in chunk order (deterministic); rays or edges whose derivative
 //! would not be finite are dropped and counted in [`Drops`], never added.
 
+pub mod bits;
 pub mod diff;
 pub mod refraction;
 pub mod silhouette;

@@ -10,10 +10,11 @@
 //! monitor, a derivative that is unbounded or not finite) are dropped and counted by reason.
 
 use arrayvec::ArrayVec;
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Point3, Vector2, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::bits::{self, PixelBits};
 use super::diff::{
     barycentric, barycentric_adjoint, normalize_adjoint, plane_hit, plane_hit_adjoint, snell,
     snell_adjoint, PlaneHit, Snell, SnellFailure,
@@ -58,6 +59,11 @@ pub struct RefractionSettings {
     /// Rays per pixel side, 1..=[`MAX_FOOTPRINT`]: each pixel is modelled by the mean of an n×n
     /// grid of rays over its area (1: the centre ray).
     pub footprint: u32,
+    /// Weight of the per-bit term ([`bits`]: the measured contrasts of the Gray bits around a
+    /// pixel's decoded cell against the share of its modelled footprint each pattern lights),
+    /// per pixel relative to the residual's robust penalty; 0: off.
+    #[serde(default)]
+    pub bit_weight: f64,
 }
 
 /// The most rays per pixel side of a footprint.
@@ -90,12 +96,13 @@ impl PixelAxes {
 }
 
 /// One object pixel of a view: its camera ray (world frame, unit direction), the decoded monitor
-/// point Q (world frame, mm) and its weight.
+/// point Q (world frame, mm), its weight and its measured Gray bits (none for imported rays).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PixelTarget {
     pub dir: V3,
     pub target: Point3<f64>,
     pub weight: f64,
+    pub bits: PixelBits,
 }
 
 /// The refraction data of one view, world frame.
@@ -107,6 +114,10 @@ pub struct ViewTargets {
     /// A point of the monitor plane and its unit normal.
     pub monitor_point: Point3<f64>,
     pub monitor_normal: V3,
+    /// One monitor pixel's step along its columns (u) and rows (v), world frame, mm (the per-bit
+    /// term's monitor coordinates: u = (X − `monitor_point`)·u_axis/|u_axis|²); `None`: no
+    /// per-bit term.
+    pub monitor_axes: Option<[V3; 2]>,
     /// The camera's pixel axes (footprint rays); `None` models pixels by their centre rays.
     pub pixel_axes: Option<PixelAxes>,
     pub pixels: Vec<PixelTarget>,
@@ -120,6 +131,7 @@ impl ViewTargets {
             eye: self.eye,
             monitor_point: self.monitor_point,
             monitor_normal: self.monitor_normal,
+            monitor_axes: self.monitor_axes,
             pixel_axes: self.pixel_axes,
             pixels: Vec::new(),
         }
@@ -226,15 +238,21 @@ pub fn footprint_gradient_into(
     let mean = paths.iter().map(|(_, e)| e.r).sum::<V3>() / m;
     let (loss, dr2) = s.robust.apply(mean.norm_squared());
     let gr = mean * (2.0 * dr2 * px.weight / m);
+    let side = if rays.len() > 1 { s.footprint } else { 1 };
+    let (bit_loss, bit_grads) = bit_term(s, view, px, &paths, side);
     out.grad.clear();
     out.ngrad.clear();
-    for (f, e) in &paths {
+    for (k, (f, e)) in paths.iter().enumerate() {
         let (mut gp, mut gd) = exit_adjoint(s, view, e, &f.d, &gr);
+        if let Some(Some((bp, bd))) = bit_grads.get(k) {
+            gp += bp;
+            gd += bd;
+        }
         for it in f.chain.iter().rev() {
             (gp, gd) = interface_adjoint(mesh, it, &gp, &gd, out);
         }
     }
-    let finite = loss.is_finite()
+    let finite = (loss + bit_loss).is_finite()
         && out
             .grad
             .iter()
@@ -243,8 +261,74 @@ pub fn footprint_gradient_into(
     if !finite {
         return Err(DropReason::NonFinite);
     }
-    out.loss = loss * px.weight;
+    out.loss = (loss + bit_loss) * px.weight;
     Ok(())
+}
+
+/// Per footprint path, the gradient with respect to its exit ray's origin and direction.
+type ExitGradients = ArrayVec<Option<(V3, V3)>, MAX_FOOTPRINT_RAYS>;
+
+/// The per-bit term of pixel `px` from its footprint's `paths` (`side` rays per footprint side):
+/// its loss times `bit_weight`, and per path the gradient (times the pixel's weight) with respect
+/// to its exit ray (`None` for a path that misses the monitor plane). Nothing when the term is
+/// off, the pixel has no measured bits or the view no monitor axes.
+fn bit_term(
+    s: &RefractionSettings,
+    view: &ViewTargets,
+    px: &PixelTarget,
+    paths: &[(Forward, Exit)],
+    side: u32,
+) -> (f64, ExitGradients) {
+    let mut grads = ExitGradients::new();
+    let Some([au, av]) = view
+        .monitor_axes
+        .filter(|_| s.bit_weight > 0.0 && px.bits.any())
+    else {
+        return (0.0, grads);
+    };
+    let (du, dv) = (au / au.norm_squared(), av / av.norm_squared());
+
+    let mut hits: ArrayVec<(usize, f64, f64), MAX_FOOTPRINT_RAYS> = ArrayVec::new();
+    let mut points: ArrayVec<Vector2<f64>, MAX_FOOTPRINT_RAYS> = ArrayVec::new();
+    for (k, (f, _)) in paths.iter().enumerate() {
+        if let Some((sdist, dn)) = screen_hit(view, &f.o, &f.d) {
+            hits.push((k, sdist, dn));
+            let x = f.o + f.d * sdist - view.monitor_point;
+            points.push(Vector2::new(x.dot(&du), x.dot(&dv)));
+        }
+    }
+    if !bits::within_cell(&px.bits, &points) {
+        return (0.0, grads);
+    }
+    let mut g = [Vector2::zeros(); MAX_FOOTPRINT_RAYS];
+    let g = &mut g[..points.len()];
+    let loss = bits::pixel_loss(&px.bits, &points, side, g);
+    let scale = s.bit_weight * px.weight;
+    grads.extend((0..paths.len()).map(|_| None));
+    for (&(k, sdist, dn), gk) in hits.iter().zip(g.iter()) {
+        let gq = (du * gk.x + dv * gk.y) * scale;
+        grads[k] = Some(screen_adjoint(view, sdist, dn, &paths[k].0.d, &gq));
+    }
+    (loss * s.bit_weight, grads)
+}
+
+/// Where the ray (o, d) meets the monitor plane: the distance along it (mm) and d·ν; `None` when
+/// it runs parallel to the plane or away from it.
+fn screen_hit(view: &ViewTargets, o: &Point3<f64>, d: &V3) -> Option<(f64, f64)> {
+    let dn = d.dot(&view.monitor_normal);
+    let sdist = (view.monitor_point - o).dot(&view.monitor_normal) / dn;
+    (sdist > 0.0 && sdist.is_finite()).then_some((sdist, dn))
+}
+
+/// From the gradient `gq` with respect to where the ray (o, d) meets the monitor plane,
+/// Q′ = o + s·d with s = ((m − o)·ν)/(d·ν) (`sdist`, `dn` = d·ν), to the gradients with respect
+/// to o and d.
+fn screen_adjoint(view: &ViewTargets, sdist: f64, dn: f64, d: &V3, gq: &V3) -> (V3, V3) {
+    let (mut gp, mut gd) = (*gq, gq * sdist);
+    let gs = gq.dot(d);
+    gp -= view.monitor_normal * (gs / dn);
+    gd -= view.monitor_normal * (gs * sdist / dn);
+    (gp, gd)
 }
 
 /// A ray's path recomputed forward: its interfaces and the exit ray (origin, unit direction).
@@ -350,11 +434,7 @@ fn exit_residual(
 ) -> Result<Exit, DropReason> {
     match s.form {
         ResidualForm::Screen => {
-            let dn = d.dot(&view.monitor_normal);
-            let sdist = (view.monitor_point - o).dot(&view.monitor_normal) / dn;
-            if !(sdist > 0.0 && sdist.is_finite()) {
-                return Err(DropReason::MissedMonitor);
-            }
+            let (sdist, dn) = screen_hit(view, o, d).ok_or(DropReason::MissedMonitor)?;
             let r = o + d * sdist - target;
             Ok(Exit { r, sdist, dn })
         }
@@ -370,14 +450,7 @@ fn exit_residual(
 /// exit ray's origin and direction `d`.
 fn exit_adjoint(s: &RefractionSettings, view: &ViewTargets, e: &Exit, d: &V3, gr: &V3) -> (V3, V3) {
     match s.form {
-        ResidualForm::Screen => {
-            // Q′ = o + s d, s = ((m − o)·ν)/(d·ν).
-            let (mut gp, mut gd) = (*gr, gr * e.sdist);
-            let gs = gr.dot(d);
-            gp -= view.monitor_normal * (gs / e.dn);
-            gd -= view.monitor_normal * (gs * e.sdist / e.dn);
-            (gp, gd)
-        }
+        ResidualForm::Screen => screen_adjoint(view, e.sdist, e.dn, d, gr),
         // The exit point is held fixed (DRT's code).
         ResidualForm::Direction => (V3::zeros(), *gr),
     }

@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use nalgebra::Vector3;
 
+use super::bits::PixelBits;
 use super::refraction::{PixelAxes, PixelTarget, ViewTargets};
 use crate::scan::decoded::{DecodedScan, MonitorTarget};
 use crate::scan::Scan;
@@ -38,6 +39,19 @@ impl TargetWeights {
     }
 }
 
+/// A decoded point's measured bits (none without contrasts).
+fn pixel_bits(t: &MonitorTarget, contrasts: Option<[f32; 4]>) -> PixelBits {
+    let Some(c) = contrasts else {
+        return PixelBits::default();
+    };
+    PixelBits {
+        u: PixelBits::axis(t.cell_u, [c[0], c[1]]),
+        v: PixelBits::axis(t.cell_v, [c[2], c[3]]),
+        centre: [t.u as f32, t.v as f32],
+        cell: [t.cell_u as f32, t.cell_v as f32],
+    }
+}
+
 /// The targets of `views` (skipping views decode left out, which are returned by index).
 pub fn scan_targets(
     scan: &Scan,
@@ -62,6 +76,7 @@ pub fn scan_targets(
                         dir: to_world * r.dir,
                         target: to_world * r.target,
                         weight: 1.0,
+                        bits: PixelBits::default(),
                     })
                     .collect()
             } else {
@@ -76,6 +91,7 @@ pub fn scan_targets(
                             dir: to_world * dir,
                             target: screen.point(t.u, t.v),
                             weight: weights.weight(t),
+                            bits: pixel_bits(t, dv.contrasts.as_ref().map(|c| c[i])),
                         })
                     })
                     .collect()
@@ -85,6 +101,10 @@ pub fn scan_targets(
                 eye: to_world * nalgebra::Point3::origin(),
                 monitor_point: screen.point(0.0, 0.0),
                 monitor_normal: screen.pose * Vector3::z(),
+                monitor_axes: Some([
+                    screen.point(1.0, 0.0) - screen.point(0.0, 0.0),
+                    screen.point(0.0, 1.0) - screen.point(0.0, 0.0),
+                ]),
                 pixel_axes: Some(PixelAxes {
                     right: to_world * Vector3::new(1.0 / scan.camera.fx, 0.0, 0.0),
                     down: to_world * Vector3::new(0.0, 1.0 / scan.camera.fy, 0.0),

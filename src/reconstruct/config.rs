@@ -110,6 +110,12 @@ pub struct Settings {
     /// of rays over its area (1: its centre ray; the cost grows as n²).
     #[serde(default = "one")]
     pub footprint: u32,
+    /// Weight of the per-bit term: per pixel, the measured contrasts of the Gray bits around its
+    /// decoded cell against the share of its modelled footprint each pattern lights, relative
+    /// to the refraction residual's penalty (0: off; scans decoded before it existed have no
+    /// contrasts).
+    #[serde(default)]
+    pub weight_bits: f64,
     /// The robust penalty's scale in the first stage after the warm-up, as a multiple of
     /// `robust`'s; it shrinks geometrically to `robust`'s at the last stage (graduated
     /// non-convexity: far from the shape every residual is large, and a small scale would
@@ -224,7 +230,7 @@ impl Settings {
             refraction_views: 2,
             silhouette_views: 4,
             pixel_stride: 2,
-            normals: NormalModel::Face,
+            normals: NormalModel::Vertex,
             residual: ResidualForm::Direction,
             robust: Robust::Cauchy(0.2),
             max_refractions: 2,
@@ -235,6 +241,7 @@ impl Settings {
             validation_share: 0.1,
             min_cos: 0.0,
             footprint: 1,
+            weight_bits: 0.01,
             robust_anneal: 1.0,
             average_share: 0.5,
         };
@@ -285,6 +292,7 @@ impl Settings {
                 warmup_stages: 0,
                 validation_share: 0.0,
                 average_share: 0.0,
+                weight_bits: 0.0,
                 ..base
             },
         }
@@ -397,6 +405,7 @@ impl Settings {
             ("weight_refraction", self.weight_refraction),
             ("weight_silhouette", self.weight_silhouette),
             ("weight_smoothness", self.weight_smoothness),
+            ("weight_bits", self.weight_bits),
         ] {
             if !(w >= 0.0 && w.is_finite()) {
                 return bad(k, "must be a finite weight ≥ 0");

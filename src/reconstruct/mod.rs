@@ -473,6 +473,7 @@ fn refraction_over(
         robust: settings.robust,
         min_cos: settings.min_cos,
         footprint: settings.footprint,
+        bit_weight: settings.weight_bits,
     };
     let vn = surface.vertex_normals();
     let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());

@@ -5,6 +5,9 @@
 //! - `view_NNN_monitor.png`: 16-bit, 4 channels: (u + 1)·s, (v + 1)·s of the decoded monitor
 //!   point (monitor pixels) and the cell widths along u and v (monitor pixels); 65535 where
 //!   nothing decodes;
+//! - `view_NNN_bits.png` (optional; written by `glasscan decode`): 16-bit, 4 channels: the
+//!   measured contrasts (pattern − inverse)/(white − black) of the last reliable and the first
+//!   unreliable Gray bit along u, then along v, as (c + 1)·32767; 65535 where a bit is absent;
 //! - `view_NNN_rays.bin` (imported scans, instead of the monitor image): per object pixel its
 //!   camera ray and its 3D target, camera frame (see [`write_rays`]);
 //! - `summary.json`: `fixed_point_scale` s and per-view figures, with the warning of any view that
@@ -16,7 +19,7 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{Point3, Vector3};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec4w};
 
-use crate::util::fixed::FixedPoint;
+use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::image::write_pixels;
 use serde::{Deserialize, Serialize};
 
@@ -60,6 +63,27 @@ pub struct DecodedView {
     pub targets: Vec<Option<MonitorTarget>>,
     /// Imported scans: per pixel a ray and a 3D target, in place of `targets` (all `None`).
     pub rays: Option<Vec<PixelRay>>,
+    /// Per pixel the measured Gray-bit contrasts (`view_NNN_bits.png`, NaN where absent), if the
+    /// decode wrote them.
+    pub contrasts: Option<Vec<[f32; 4]>>,
+}
+
+/// A bit's contrast in [−1, 1] (clamped; NaN: absent) as stored in `view_NNN_bits.png`.
+pub fn encode_contrast(c: f32) -> u16 {
+    if c.is_nan() {
+        NONE
+    } else {
+        ((c.clamp(-1.0, 1.0) + 1.0) * 32767.0).round() as u16
+    }
+}
+
+/// The inverse of [`encode_contrast`].
+pub fn decode_contrast(c: u16) -> f32 {
+    if c == NONE {
+        f32::NAN
+    } else {
+        c as f32 / 32767.0 - 1.0
+    }
 }
 
 /// A camera pixel's ray and the 3D point it sees on the monitor, camera frame, mm.
@@ -140,16 +164,27 @@ pub fn monitor_path(dir: &Path, k: usize) -> PathBuf {
     dir.join(format!("view_{k:03}_monitor.png"))
 }
 
-/// Writes view `k`'s mask (0/255) and monitor points (encoded as above) into `dir`.
+/// Path of view `k`'s measured bit contrasts in the decoded folder `dir`.
+pub fn contrasts_path(dir: &Path, k: usize) -> PathBuf {
+    dir.join(format!("view_{k:03}_bits.png"))
+}
+
+/// Writes view `k`'s mask (0/255), monitor points and bit contrasts, if any (encoded as above),
+/// into `dir`.
 pub fn write_view(
     dir: &Path,
     k: usize,
     (width, height): (u32, u32),
     mask: &[u8],
     monitor: &[Vec4w],
+    contrasts: Option<&[Vec4w]>,
 ) -> Result<()> {
     write_pixels(&mask_path(dir, k), width, height, mask)?;
-    write_pixels(&monitor_path(dir, k), width, height, monitor)
+    write_pixels(&monitor_path(dir, k), width, height, monitor)?;
+    match contrasts {
+        Some(c) => write_pixels(&contrasts_path(dir, k), width, height, c),
+        None => Ok(()),
+    }
 }
 
 /// Writes `summary.json`.
@@ -247,6 +282,7 @@ impl DecodedScan {
                 mask: mask.iter().map(|&b| b != 0).collect(),
                 targets: vec![None; n],
                 rays: Some(read_rays(&rays, n)?),
+                contrasts: None,
             }));
         }
         let path = monitor_path(&self.dir, k);
@@ -270,7 +306,19 @@ impl DecodedScan {
             mask: mask.iter().map(|&b| b != 0).collect(),
             targets,
             rays: None,
+            contrasts: self.contrasts(k)?,
         }))
+    }
+
+    /// View `k`'s measured bit contrasts, if the decode wrote them.
+    fn contrasts(&self, k: usize) -> Result<Option<Vec<[f32; 4]>>> {
+        let path = contrasts_path(&self.dir, k);
+        if !path.is_file() {
+            return Ok(None);
+        }
+        let m = self.load(&path, opencv::core::CV_16UC4)?;
+        let c = m.data_typed::<Vec4w>()?;
+        Ok(Some(c.iter().map(|p| p.0.map(decode_contrast)).collect()))
     }
 
     fn load(&self, path: &Path, typ: i32) -> Result<Mat> {

@@ -4,6 +4,7 @@
 
 #![allow(clippy::needless_range_loop)]
 
+use glasscan::loss::bits::PixelBits;
 use glasscan::loss::refraction::{
     add_view, footprint_gradient_into, footprint_offsets, pixel_gradient, MeshState, PixelAxes,
     PixelGradient, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
@@ -67,6 +68,8 @@ struct Case {
     px: PixelTarget,
     /// The pixel's rays (one: its centre ray) and the triangles each refracts at.
     rays: Vec<(V3, Vec<u32>)>,
+    /// Where the centre ray meets the plane z = `monitor_z`.
+    landing: Point3<f64>,
 }
 
 fn settings(
@@ -84,6 +87,7 @@ fn settings(
         robust,
         min_cos: 0.0,
         footprint: 1,
+        bit_weight: 0.0,
     }
 }
 
@@ -136,6 +140,7 @@ fn case(
             eye,
             monitor_point: Point3::new(0.0, 0.0, monitor_z),
             monitor_normal: V3::z(),
+            monitor_axes: None,
             pixel_axes: None,
             pixels: vec![],
         },
@@ -143,8 +148,10 @@ fn case(
             dir,
             target,
             weight: 0.7,
+            bits: Default::default(),
         },
         rays: vec![(dir, trails[0].prims().to_vec())],
+        landing: o + d * ((monitor_z - o.z) / d.z),
         mesh,
     }
 }
@@ -324,6 +331,61 @@ fn footprint_gradient_matches_finite_differences() {
     }
 }
 
+/// `c` with the per-bit term on: monitor pixels of 0.1 mm, the monitor turned 0.3 rad about z
+/// (so that no two rays of a footprint share a monitor coordinate: the extent's end rays would
+/// tie), and measured bits of a 16 × 8 pixel cell centred 2 pixels from where the centre ray
+/// lands (inside it: the term acts within the cell).
+fn with_bits(mut c: Case) -> Case {
+    c.s.bit_weight = 0.5;
+    let (sin, cos) = 0.3f64.sin_cos();
+    let axes = [V3::new(cos, sin, 0.0) * 0.1, V3::new(-sin, cos, 0.0) * 0.1];
+    let x = c.landing - c.view.monitor_point;
+    let at = |a: usize| (x.dot(&axes[a]) / axes[a].norm_squared()) as f32;
+    c.view.monitor_axes = Some(axes);
+    c.px.bits = PixelBits {
+        u: PixelBits::axis(16.0, [0.3, -0.1]),
+        v: PixelBits::axis(8.0, [-0.5, 0.2]),
+        centre: [at(0) + 2.0, at(1) - 1.0],
+        cell: [16.0, 8.0],
+    };
+    c
+}
+
+#[test]
+fn the_per_bit_term_gradient_matches_finite_differences() {
+    for seed in 0..3u64 {
+        for n in [1u32, 2] {
+            for form in [ResidualForm::Screen, ResidualForm::Direction] {
+                let mesh = slab(6, (0.8, 0.8), bumpy(0.15, seed), {
+                    let b = bumpy(0.15, seed + 100);
+                    move |x, y| -1.5 + b(x, y)
+                });
+                let mut s = settings(1.5, NormalModel::Face, form, Robust::Cauchy(0.05));
+                s.footprint = n;
+                let plain = footprint_case(mesh, s, Point3::new(0.11, -0.07, 5.0), n);
+                let c = with_bits(footprint_case(
+                    plain.mesh.clone(),
+                    s,
+                    Point3::new(0.11, -0.07, 5.0),
+                    n,
+                ));
+                let (gb, g0) = (analytic(&c), analytic(&plain));
+                let moved = gb
+                    .iter()
+                    .zip(&g0)
+                    .map(|(a, b)| (a - b).amax())
+                    .fold(0.0, f64::max);
+                assert!(
+                    moved > 1e-6,
+                    "seed {seed} n {n}: the bits do not change the gradient"
+                );
+                assert!(loss(&c, &c.mesh).unwrap() > loss(&plain, &c.mesh).unwrap());
+                fd_check(&c, 1e-6, &format!("bits seed {seed} n {n} {form:?}"));
+            }
+        }
+    }
+}
+
 #[test]
 fn a_symmetric_footprint_on_a_flat_slab_lands_where_its_centre_ray_does() {
     // At normal incidence through parallel faces the four rays land symmetrically about the
@@ -435,6 +497,7 @@ fn near_the_critical_angle_the_gradient_holds_and_beyond_it_the_ray_is_dropped()
         eye,
         monitor_point: Point3::new(0.0, 0.0, -3.0),
         monitor_normal: V3::z(),
+        monitor_axes: None,
         pixel_axes: None,
         pixels: vec![],
     };
@@ -442,6 +505,7 @@ fn near_the_critical_angle_the_gradient_holds_and_beyond_it_the_ray_is_dropped()
         dir,
         target: Point3::new(0.0, 0.0, -3.0),
         weight: 1.0,
+        bits: Default::default(),
     };
     assert!(trails[0].prims().is_empty());
     // The face the ray reflects at, given explicitly.
@@ -477,6 +541,7 @@ fn degenerate_triangles_drop_rays_and_never_reach_a_gradient() {
             eye: Point3::new(0.3, 0.2, 2.0),
             monitor_point: Point3::new(0.0, 0.0, -5.0),
             monitor_normal: V3::z(),
+            monitor_axes: None,
             pixel_axes: None,
             pixels: vec![],
         };
@@ -484,6 +549,7 @@ fn degenerate_triangles_drop_rays_and_never_reach_a_gradient() {
             dir: -V3::z(),
             target: Point3::new(0.0, 0.0, -5.0),
             weight: 1.0,
+            bits: Default::default(),
         };
         let r = pixel_gradient(&state(&mesh, &vn), &s, &view, &px, &[degenerate, 0]);
         assert_eq!(r.err(), Some(DropReason::Grazing), "{normals:?}");
@@ -693,6 +759,7 @@ fn exact_views(surface: &MeshSurface) -> Vec<ViewTargets> {
                 eye: to_world * Point3::origin(),
                 monitor_point: world_screen.point(0.0, 0.0),
                 monitor_normal: world_screen.pose * V3::z(),
+                monitor_axes: None,
                 pixel_axes: None,
                 pixels: samples
                     .iter()
@@ -702,6 +769,7 @@ fn exact_views(surface: &MeshSurface) -> Vec<ViewTargets> {
                         dir: to_world * cam.pixel_ray((i % 160) as f64, (i / 160) as f64).unwrap(),
                         target: world_screen.point(smp.monitor.x, smp.monitor.y),
                         weight: 1.0,
+                        bits: Default::default(),
                     })
                     .collect(),
             }
@@ -810,6 +878,7 @@ fn gradients_are_bitwise_the_same_on_any_number_of_threads() {
         eye,
         monitor_point: to_world * Point3::new(0.0, 0.0, 500.0),
         monitor_normal: to_world * V3::z(),
+        monitor_axes: None,
         pixel_axes: None,
         pixels: (0..200 * 150)
             .map(|i| PixelTarget {
@@ -821,6 +890,7 @@ fn gradients_are_bitwise_the_same_on_any_number_of_threads() {
                         500.0,
                     ),
                 weight: 1.0,
+                bits: Default::default(),
             })
             .collect(),
     };
