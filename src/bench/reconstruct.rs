@@ -418,7 +418,7 @@ fn run_one(
     }
     let views = spread_views(case.views, scan.config.views.angles_deg.len());
     let t0 = Instant::now();
-    let (inputs, _) = reconstruct::load_inputs(scan, &views, settings.target_weights)?;
+    let (inputs, _) = reconstruct::load_inputs(scan, &views, &settings)?;
     let (hull, _) = visual_hull(
         &inputs.silhouettes,
         &HullOptions::default(),

@@ -574,12 +574,14 @@ fn check_stage_mesh(mesh: &TriMesh, s: usize) -> Result<usize> {
         .sum())
 }
 
-/// Loads the decoded targets (weighted by `weights`) and silhouettes of `views`.
+/// Loads the decoded targets (weighted by `settings.target_weights`) and silhouettes of `views`,
+/// with warnings: views without refraction data, a per-bit term without contrasts to read.
 pub fn load_inputs(
     scan: &crate::scan::Scan,
     views: &[usize],
-    weights: crate::loss::targets::TargetWeights,
+    settings: &Settings,
 ) -> Result<(Inputs, Vec<String>)> {
+    let weights = settings.target_weights;
     let (silhouettes, mut warnings) = crate::hull::silhouettes(scan, views)?;
     let (targets, skipped) = crate::loss::targets::scan_targets(scan, views, weights)?;
     if targets.is_empty() {
@@ -594,6 +596,13 @@ pub fn load_inputs(
             .iter()
             .map(|k| format!("view {k}: no refraction data (decode skipped it)")),
     );
+    let has_bits = targets.iter().flat_map(|t| &t.pixels).any(|p| p.bits.any());
+    if settings.weight_bits > 0.0 && !has_bits && scan.dir.join("captures").is_dir() {
+        warnings.push(format!(
+            "the decoded data has no Gray-bit contrasts (decoded by an earlier glasscan): the per-bit term is idle; run `glasscan decode {}` again to use it",
+            scan.dir.display()
+        ));
+    }
     Ok((
         Inputs {
             ior: scan.config.ior,

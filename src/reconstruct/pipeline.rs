@@ -56,7 +56,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         out,
         existing,
     } = job;
-    let (inputs, warnings) = load_inputs(scan, &views, settings.target_weights)?;
+    let (inputs, warnings) = load_inputs(scan, &views, &settings)?;
     for w in &warnings {
         progress.note(&format!("warning: {w}"));
     }

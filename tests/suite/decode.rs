@@ -430,7 +430,8 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
     // The per-bit term end to end: `decode` writes the contrasts of the Gray bits around each
     // pixel's cell (16 area samples per pixel, as a camera integrates its pixel); modelled through
     // the true ellipsoid (2×2 rays per pixel, smooth normals as the simulator's) they fit, and
-    // through one 1 % larger (0.2–0.3 mm) they fit far worse. Wrong conventions (bit order, sign,
+    // through one 1 % larger (0.2–0.3 mm) they fit far worse, though there the term drops the
+    // pixels whose footprint left its cell. Wrong conventions (bit order, sign,
     // the pixel-centre offset) would fit the truth no better than anything else.
     use glasscan::loss::refraction::{add_view, RefractionSettings, ResidualForm};
     use glasscan::loss::{targets::scan_targets, Accumulator, Robust};
@@ -491,7 +492,22 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
     let (at_truth, off) = (bit_loss(&truth), bit_loss(&grown));
     eprintln!("per-bit term per pixel: {at_truth:.4} on the truth, {off:.4} 1 % larger");
     assert!(
-        at_truth < 0.15 && at_truth < 0.2 * off,
+        at_truth < 0.15 && at_truth < 0.3 * off,
         "{at_truth} against {off}"
     );
+    // A scan decoded before the contrasts existed: `reconstruct` says the term is idle.
+    for k in 0..2 {
+        std::fs::remove_file(scan_dir.join(format!("decoded/view_{k:03}_bits.png"))).unwrap();
+    }
+    let out = dir.path().join("out");
+    let o = glasscan(&[
+        "reconstruct",
+        scan_dir.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--views",
+        "0",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("per-bit term is idle"), "{err}");
 }
