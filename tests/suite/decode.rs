@@ -345,19 +345,31 @@ fn captured_ellipsoid(
     views: usize,
     transport: Transport,
 ) -> std::path::PathBuf {
+    ellipsoid_captures(
+        dir,
+        SimulateOptions {
+            views,
+            spp: 4,
+            noise: 2.0,
+            blur_px: 0.7,
+            transport,
+            ..Default::default()
+        },
+    )
+}
+
+/// A captured scan of a 60 × 44 × 36 mm ellipsoid on a small rig (320×240 camera, 480×300
+/// monitor of 0.8 mm pixels) with `capture`'s views, samples, noise, blur and transport, in
+/// `dir/scan`.
+fn ellipsoid_captures(dir: &std::path::Path, capture: SimulateOptions) -> std::path::PathBuf {
     let scan = dir.join("scan");
     let opts = SimulateOptions {
-        views,
         width: 320,
         height: 240,
         screen_width: 480,
         screen_height: 300,
         pitch_mm: 0.8,
-        spp: 4,
-        noise: 2.0,
-        blur_px: 0.7,
-        transport,
-        ..Default::default()
+        ..capture
     };
     let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
     simulate(&shape, &scan, &opts, |_| ()).unwrap();
@@ -438,20 +450,15 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
     use glasscan::mesh::TriMesh;
     use glasscan::trace::path::{MeshSurface, NormalModel};
     let dir = tempfile::tempdir().unwrap();
-    let scan_dir = dir.path().join("scan");
-    let opts = SimulateOptions {
-        views: 2,
-        width: 320,
-        height: 240,
-        screen_width: 480,
-        screen_height: 300,
-        pitch_mm: 0.8,
-        spp: 16,
-        noise: 1.0,
-        ..Default::default()
-    };
-    let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
-    simulate(&shape, &scan_dir, &opts, |_| ()).unwrap();
+    let scan_dir = ellipsoid_captures(
+        dir.path(),
+        SimulateOptions {
+            views: 2,
+            spp: 16,
+            noise: 1.0,
+            ..Default::default()
+        },
+    );
     crate::common::ok(&glasscan(&["decode", scan_dir.to_str().unwrap()]));
     let scan = glasscan::scan::Scan::open(&scan_dir).unwrap();
     let (views, _) = scan_targets(&scan, &[0, 1], Default::default()).unwrap();
