@@ -175,6 +175,7 @@ fn ensure_scan(object: &ObjectMesh, dir: &Path, log: &dyn Fn(&str)) -> Result<()
     let options = crate::simulate::SimulateOptions {
         distortion: LENS,
         calibration_images: true,
+        normals: object.normals(),
         ..ScanKind::Noisy.simulate_options(&Rig::default())
     };
     log(&format!(

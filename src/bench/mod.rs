@@ -11,29 +11,35 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 
 use crate::mesh::io::read_mesh;
-use crate::mesh::shapes::glass_block;
+use crate::mesh::shapes::{cut_prism, glass_block};
 use crate::mesh::TriMesh;
+use crate::trace::path::NormalModel;
 use crate::util::atomic::write_atomic;
 
-/// The benchmark object built in rather than read: [`glass_block`] (1 mm marching-cubes steps).
+/// The benchmark objects built in rather than read: [`glass_block`] (1 mm marching-cubes steps,
+/// rounded edges) and [`cut_prism`] (flat facets, sharp edges).
 pub const BUILT_IN_BLOCK: &str = "block";
+pub const BUILT_IN_PRISM: &str = "prism";
 
-/// Where a benchmark object's mesh comes from: `block` is built in, any other name is
-/// `{meshes}/{name}_scan.ply`, which must exist (checked before any work).
+/// Where a benchmark object's mesh comes from: `block` and `prism` are built in, any other name
+/// is `{meshes}/{name}_scan.ply`, which must exist (checked before any work).
 pub enum ObjectMesh {
     Block,
+    Prism,
     File(PathBuf),
 }
 
 impl ObjectMesh {
     pub fn locate(meshes: &Path, name: &str) -> Result<Self> {
-        if name == BUILT_IN_BLOCK {
-            return Ok(ObjectMesh::Block);
+        match name {
+            BUILT_IN_BLOCK => return Ok(ObjectMesh::Block),
+            BUILT_IN_PRISM => return Ok(ObjectMesh::Prism),
+            _ => {}
         }
         let path = meshes.join(format!("{name}_scan.ply"));
         if !path.is_file() {
             bail!(
-                "{}: no such mesh (--meshes names the folder of {{object}}_scan.ply; `{BUILT_IN_BLOCK}` is built in)",
+                "{}: no such mesh (--meshes names the folder of {{object}}_scan.ply; `{BUILT_IN_BLOCK}` and `{BUILT_IN_PRISM}` are built in)",
                 path.display()
             );
         }
@@ -44,7 +50,17 @@ impl ObjectMesh {
     pub fn read(&self) -> Result<TriMesh> {
         match self {
             ObjectMesh::Block => Ok(glass_block(1.0)),
+            ObjectMesh::Prism => Ok(cut_prism()),
             ObjectMesh::File(p) => Ok(read_mesh(p)?),
+        }
+    }
+
+    /// The normals its scans are simulated with: the prism's facets are flat and its edges
+    /// sharp; the other objects are smooth glass.
+    pub fn normals(&self) -> NormalModel {
+        match self {
+            ObjectMesh::Prism => NormalModel::Face,
+            ObjectMesh::Block | ObjectMesh::File(_) => NormalModel::Vertex,
         }
     }
 
@@ -52,6 +68,7 @@ impl ObjectMesh {
     pub fn describe(&self) -> String {
         match self {
             ObjectMesh::Block => "the built-in glass block".into(),
+            ObjectMesh::Prism => "the built-in cut prism".into(),
             ObjectMesh::File(p) => p.display().to_string(),
         }
     }

@@ -60,7 +60,7 @@ impl ScanKind {
         }
     }
 
-    /// The simulator's options for this kind of scan on `rig`.
+    /// The simulator's options for this kind of scan on `rig` (a smooth object's normals).
     pub fn simulate_options(self, rig: &Rig) -> SimulateOptions {
         let noisy = self != ScanKind::Exact;
         let d = SimulateOptions::default();
@@ -335,7 +335,11 @@ fn ensure_scan(
         dir.display()
     ));
     let t0 = Instant::now();
-    simulate(&mesh, dir, &kind.simulate_options(rig), |_| ())?;
+    let opts = SimulateOptions {
+        normals: object.normals(),
+        ..kind.simulate_options(rig)
+    };
+    simulate(&mesh, dir, &opts, |_| ())?;
     if kind != ScanKind::Exact {
         let scan = Scan::open(dir)?;
         let views: Vec<usize> = (0..SCAN_VIEWS).collect();

@@ -55,9 +55,14 @@ pub struct ReconstructBenchArgs {
     /// the runs results.json already holds.
     #[arg(long, default_value = "target/bench-reconstruct")]
     pub work: PathBuf,
-    /// Objects, comma-separated: {object}_scan.ply in --meshes, or `block` (a glass block with
-    /// flat, parallel faces on a plinth, built in).
-    #[arg(long, value_delimiter = ',', default_value = "pig,horse,dog,block")]
+    /// Objects, comma-separated: {object}_scan.ply in --meshes, `block` (a glass block with
+    /// flat, parallel faces and rounded edges on a plinth) or `prism` (a cut prism, sharp edges),
+    /// both built in.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "pig,horse,dog,block,prism"
+    )]
     pub objects: Vec<String>,
     /// Presets, comma-separated (drt gets the time of the slowest other preset).
     #[arg(

@@ -297,6 +297,41 @@ pub fn glass_block(step: f64) -> TriMesh {
     implicit_surface(field, lo, lo + Vector3::repeat(128.0), step)
 }
 
+/// A cut glass prism, +y up and centred on the turntable axis, mm: a 45 mm tall prism over a
+/// 70 × 35 mm rectangle whose four vertical edges are cut by 6 mm chamfers (an octagon), every
+/// edge sharp. Flat facets only (32 triangles): simulate it with face normals.
+pub fn cut_prism() -> TriMesh {
+    let (a, b, c, h) = (35.0, 17.5, 6.0, 22.5);
+    // The octagon's corners in the (x, z) plane, by increasing angle from +x towards +z:
+    // clockwise seen from +y, so the top's triangles take them in reverse.
+    let outline = [
+        (a, b - c),
+        (a - c, b),
+        (c - a, b),
+        (-a, b - c),
+        (-a, c - b),
+        (c - a, -b),
+        (a - c, -b),
+        (a, c - b),
+    ];
+    let mut positions: Vec<Point3<f64>> = Vec::with_capacity(18);
+    for y in [h, -h] {
+        positions.extend(outline.iter().map(|&(x, z)| Point3::new(x, y, z)));
+    }
+    positions.push(Point3::new(0.0, h, 0.0));
+    positions.push(Point3::new(0.0, -h, 0.0));
+    let (n, top, bottom) = (8u32, 16u32, 17u32);
+    let mut faces = Vec::with_capacity(32);
+    for i in 0..n {
+        let j = (i + 1) % n;
+        faces.push([top, j, i]);
+        faces.push([bottom, n + i, n + j]);
+        faces.push([i, j, n + j]);
+        faces.push([i, n + j, n + i]);
+    }
+    TriMesh::new(positions, faces)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -308,6 +343,14 @@ mod tests {
             + 2.0 * r * (a * b + b * c + a * c)
             + std::f64::consts::PI * r * r * (a + b + c)
             + 4.0 / 3.0 * std::f64::consts::PI * r.powi(3)
+    }
+
+    #[test]
+    fn the_cut_prism_is_a_valid_solid_of_the_octagon_s_volume() {
+        let mesh = cut_prism();
+        crate::mesh::validate::ensure_valid(&mesh).unwrap();
+        let octagon = 70.0 * 35.0 - 2.0 * 6.0 * 6.0;
+        assert!((mesh.signed_volume() - 45.0 * octagon).abs() < 1e-9);
     }
 
     #[test]

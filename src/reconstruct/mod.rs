@@ -100,6 +100,22 @@ pub struct Checkpoint {
     pub stages_done: usize,
     pub history: Vec<IterationRecord>,
     pub stages: Vec<StageReport>,
+    /// The warm-up judged against the start mesh on the held-out views, once it has ended.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warm_up: Option<WarmUpVerdict>,
+}
+
+/// Whether the warm-up made the mesh fit the held-out views better: DRT's steps carve what the
+/// hull left (a wedge between legs) but on flat faces, where the hull is already close, they
+/// can leave the mesh worse than it started; the stages after a warm-up that fits worse start
+/// from the start mesh instead.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WarmUpVerdict {
+    /// Held-out refraction term of the start mesh and of the warm-up's last mesh.
+    pub start_refraction: f64,
+    pub warm_up_refraction: f64,
+    /// True: the next stages start from the start mesh.
+    pub discarded: bool,
 }
 
 /// Where a fresh run starts.
@@ -163,6 +179,9 @@ pub fn run(
         }
         mesh = run_next_stage(inputs, &split, &mut ck, &mesh, progress)?;
         write_mesh(&stage_path(out, ck.stages_done - 1), &mesh)?;
+        if ck.stages_done == settings.warmup_stages {
+            mesh = judge_warm_up(inputs, &split, &mut ck, mesh, out, progress)?;
+        }
         commit(out, &ck)?;
     }
     Ok(Finished {
@@ -197,6 +216,7 @@ fn begin_run(
         stages_done: 0,
         history: Vec::new(),
         stages: Vec::new(),
+        warm_up: None,
     };
     commit(out, &ck)?;
     Ok((ck, mesh))
@@ -210,14 +230,52 @@ fn continue_run(ck: Checkpoint, settings: &Settings, out: &Path) -> Result<(Chec
             out.display()
         );
     }
+    let discarded = ck.warm_up.as_ref().is_some_and(|w| w.discarded);
     let path = match ck.stages_done {
         0 => out.join(&ck.start_mesh),
+        n if discarded && n == ck.settings.warmup_stages => out.join(&ck.start_mesh),
         n => stage_path(out, n - 1),
     };
     let mesh = read_mesh(&path).context(
         "--resume: the mesh the checkpoint names is unreadable; start over with --force",
     )?;
     Ok((ck, mesh))
+}
+
+/// Judges the warm-up that just ended (its last mesh `warmed`) against the run's start mesh on
+/// the held-out views: returns the mesh the next stages start from, recorded in `ck`. Without
+/// held-out views the warm-up is kept unjudged.
+fn judge_warm_up(
+    inputs: &Inputs,
+    split: &Split,
+    ck: &mut Checkpoint,
+    warmed: TriMesh,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<TriMesh> {
+    let warm_fit = ck.stages.last().and_then(|r| r.validation.as_ref());
+    let Some(warm_up_refraction) = warm_fit.map(|v| v.refraction) else {
+        return Ok(warmed);
+    };
+    let start = read_mesh(&out.join(&ck.start_mesh))
+        .context("the start mesh of this run is unreadable; start over with --force")?;
+    let Some(start_fit) = validate_mesh(inputs, split, &start, &ck.settings)? else {
+        return Ok(warmed);
+    };
+    let discarded = warm_up_refraction > start_fit.refraction;
+    if discarded {
+        progress.note(&format!(
+            "the warm-up fits the held-out views worse than the start mesh (refraction {:.4e} \
+             against {:.4e}): the next stages start from the start mesh",
+            warm_up_refraction, start_fit.refraction
+        ));
+    }
+    ck.warm_up = Some(WarmUpVerdict {
+        start_refraction: start_fit.refraction,
+        warm_up_refraction,
+        discarded,
+    });
+    Ok(if discarded { start } else { warmed })
 }
 
 /// The share of the start mesh's area whose thickness is its "thin parts" (see
@@ -627,6 +685,7 @@ mod tests {
             stages_done: 0,
             history: Vec::new(),
             stages: Vec::new(),
+            warm_up: None,
         }
     }
 
@@ -654,5 +713,28 @@ mod tests {
             assert_eq!(thick[s], free[s], "stage {s}");
         }
         assert!((free[0] - 4.0).abs() < 1e-12, "{free:?}");
+    }
+
+    #[test]
+    fn a_resumed_run_starts_after_a_discarded_warm_up_from_the_start_mesh() {
+        let dir = tempfile::tempdir().unwrap();
+        let start = crate::mesh::shapes::icosphere(10.0, 1);
+        let warmed = crate::mesh::shapes::icosphere(12.0, 1);
+        write_mesh(&dir.path().join("start.ply"), &start).unwrap();
+        let mut ck = checkpoint(None);
+        ck.stages_done = ck.settings.warmup_stages;
+        for s in 0..ck.stages_done {
+            write_mesh(&stage_path(dir.path(), s), &warmed).unwrap();
+        }
+        for (discarded, want) in [(true, &start), (false, &warmed)] {
+            ck.warm_up = Some(WarmUpVerdict {
+                start_refraction: 1.0,
+                warm_up_refraction: if discarded { 2.0 } else { 0.5 },
+                discarded,
+            });
+            let settings = ck.settings.clone();
+            let (_, mesh) = continue_run(ck.clone(), &settings, dir.path()).unwrap();
+            assert_eq!(mesh.positions, want.positions, "discarded: {discarded}");
+        }
     }
 }

@@ -225,10 +225,15 @@ const MARGIN: f64 = 0.7;
 
 /// Accuracy (mm) of the run's `hull.ply` against the scan's ground truth.
 fn hull_accuracy(out: &Path, scan: &Path) -> f64 {
-    let json = out.join("hull-eval.json");
+    accuracy(&out.join("hull.ply"), scan)
+}
+
+/// `mesh`'s accuracy against `scan`'s ground truth, mm (`glasscan eval`).
+fn accuracy(mesh: &Path, scan: &Path) -> f64 {
+    let json = mesh.with_extension("eval.json");
     let o = glasscan(&[
         "eval",
-        out.join("hull.ply").to_str().unwrap(),
+        mesh.to_str().unwrap(),
         "--reference",
         scan.join("ground_truth.ply").to_str().unwrap(),
         "--json",
@@ -238,6 +243,45 @@ fn hull_accuracy(out: &Path, scan: &Path) -> f64 {
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
     v["accuracy_mm"].as_f64().unwrap()
+}
+
+/// A run judges its warm-up against its start mesh on the held-out views. Started from the true
+/// shape, which DRT's coarse steps can only make worse, the warm-up is discarded (and says so in
+/// the report) and the stages after it start from the truth again, ending closer to it than the
+/// warm-up's mesh.
+#[test]
+fn a_warm_up_that_fits_worse_than_its_start_is_discarded() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    small_scan(&scan);
+    let config = dir.path().join("c.toml");
+    std::fs::write(&config, CONFIG).unwrap();
+    let out = dir.path().join("out");
+    let mut args = reconstruct_args(&scan, &config, &out);
+    args.extend(["--init", scan.join("ground_truth.ply").to_str().unwrap()].map(String::from));
+    let o = glasscan(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("the warm-up fits the held-out views worse"),
+        "{stderr}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let verdict = &report["warm_up"];
+    assert_eq!(verdict["discarded"], true, "{verdict}");
+    assert!(
+        verdict["start_refraction"].as_f64().unwrap()
+            < verdict["warm_up_refraction"].as_f64().unwrap()
+    );
+    let (warmed, result) = (
+        accuracy(&out.join("stage_00.ply"), &scan),
+        accuracy(&out.join("result.ply"), &scan),
+    );
+    assert!(
+        result < warmed,
+        "result {result} mm against the warm-up's {warmed}"
+    );
 }
 
 /// Nearly air (1.0001: the refraction term carries almost nothing) and diamond (2.42: about half
