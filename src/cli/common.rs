@@ -214,7 +214,7 @@ impl Progress for StageBars {
     fn stage_end(&self, r: &StageReport) {
         self.bar.suspend(|| {
             eprintln!(
-                "stage {:>2}: edge {:.2} mm, {} faces, {:.1} s, loss {:.3e} (refraction {:.3e}, silhouette {:.3e}, smoothness {:.3e}), rays used {}, dropped {}{}",
+                "stage {:>2}: edge {:.2} mm, {} faces, {:.1} s, loss {:.3e} (refraction {:.3e}, silhouette {:.3e}, smoothness {:.3e}{}), rays used {}, dropped {}{}",
                 r.stage + 1,
                 r.edge_mm,
                 r.faces,
@@ -223,6 +223,11 @@ impl Progress for StageBars {
                 r.last.refraction,
                 r.last.silhouette,
                 r.last.smoothness,
+                if r.last.unseen > 0.0 {
+                    format!(", unseen {:.3e} on {:.0} % of the vertices", r.last.unseen, 100.0 * r.unseen_share)
+                } else {
+                    String::new()
+                },
                 r.refraction_rays_used,
                 r.refraction_drops.total(),
                 if r.averaged {

@@ -1,7 +1,8 @@
 //! The losses of the optimisation and their exact gradients with respect to every vertex
 //! position (docs/architecture.md §4–5), written by hand: [`refraction`] (decoded monitor points,
 //! with [`bits`]: the measured Gray bits),
-//! [`silhouette`] (contour edges against the masks) and [`smoothness`] (dihedral angles).
+//! [`silhouette`] (contour edges against the masks), [`smoothness`] (dihedral angles) and
+//! [`membrane`] (where the refraction data cannot see).
 //!
 //! Each chunk of rays or edges is differentiated on one thread into [`Contributions`], which are
 //! summed into an [`Accumulator`] in chunk order (deterministic); rays or edges whose derivative
@@ -9,6 +10,7 @@
 
 pub mod bits;
 pub mod diff;
+pub mod membrane;
 pub mod refraction;
 pub mod silhouette;
 pub mod smoothness;

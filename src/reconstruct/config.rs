@@ -139,6 +139,11 @@ pub struct Settings {
     /// warm-up's stages take `drt`'s (0).
     #[serde(default)]
     pub average_share: f64,
+    /// Weight of the membrane term ([`crate::loss::membrane`]) on the vertices no compared
+    /// refraction ray's path has touched in the stage so far (faces seen only edge-on), relative
+    /// to the other terms; it starts once every fitted view has had about one sample. 0: off.
+    #[serde(default)]
+    pub weight_unseen: f64,
 }
 
 fn one() -> u32 {
@@ -244,6 +249,7 @@ impl Settings {
             weight_bits: 0.01,
             robust_anneal: 1.0,
             average_share: 0.5,
+            weight_unseen: 0.0,
         };
         match preset {
             Preset::Fast => base,
@@ -293,6 +299,7 @@ impl Settings {
                 validation_share: 0.0,
                 average_share: 0.0,
                 weight_bits: 0.0,
+                weight_unseen: 0.0,
                 ..base
             },
         }
@@ -406,6 +413,7 @@ impl Settings {
             ("weight_silhouette", self.weight_silhouette),
             ("weight_smoothness", self.weight_smoothness),
             ("weight_bits", self.weight_bits),
+            ("weight_unseen", self.weight_unseen),
         ] {
             if !(w >= 0.0 && w.is_finite()) {
                 return bad(k, "must be a finite weight ≥ 0");

@@ -5,6 +5,7 @@
 //! ([`output`]), from which `--resume` continues with the same result as an uninterrupted run.
 
 pub mod config;
+pub mod coverage;
 pub mod optim;
 pub mod output;
 pub mod pipeline;
@@ -25,6 +26,7 @@ use serde::{Deserialize, Serialize};
 use indicatif::ProgressBar;
 
 use crate::hull::{visual_hull, HullOptions};
+use crate::loss::membrane::add_membrane;
 use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
 use crate::loss::smoothness::add_smoothness;
 use crate::loss::{silhouette, Accumulator, Drops};
@@ -38,6 +40,7 @@ use crate::trace::refract::IOR_AIR;
 use crate::trace::thickness::thickness_quantile;
 use crate::trace::BuildMode;
 use config::Settings;
+use coverage::Coverage;
 use optim::{Stepper, TailMean};
 use output::commit;
 pub use output::{checkpoint_path, stage_path, Existing};
@@ -60,6 +63,9 @@ pub struct IterationRecord {
     pub refraction: f64,
     pub silhouette: f64,
     pub smoothness: f64,
+    /// The membrane term on what the refraction data cannot see (0 when off).
+    #[serde(default)]
+    pub unseen: f64,
     pub total: f64,
 }
 
@@ -83,6 +89,10 @@ pub struct StageReport {
     /// The stage's mesh is the mean of its last iterates (`average_share`), not its last.
     #[serde(default)]
     pub averaged: bool,
+    /// Share of the stage mesh's vertices that no compared refraction ray touched during the
+    /// stage (faces seen only edge-on, or hidden; the membrane term acts there, `weight_unseen`).
+    #[serde(default)]
+    pub unseen_share: f64,
 }
 
 /// The state saved after every stage.
@@ -395,12 +405,22 @@ fn run_stage(
     let (mut used, mut drops, mut contour) = (0, Drops::default(), 0);
     let mut last = IterationRecord::default();
     let mut tail = TailMean::new(settings.iterations, settings.average_share);
+    let warm_in = split
+        .fit_targets
+        .len()
+        .div_ceil(settings.refraction_views.max(1));
+    let mut coverage = Coverage::new(mesh.positions.len(), warm_in);
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ ((s as u64) << 40) ^ it as u64);
+        let refraction = refraction_term(inputs, split, &surface, mesh, settings, &mut rng)?;
+        let silhouette =
+            silhouette_term(inputs, split, &surface, mesh, &edges, settings, &mut rng)?;
+        coverage.record(&refraction.grad);
         let terms = Terms {
-            refraction: refraction_term(inputs, split, &surface, mesh, settings, &mut rng)?,
-            silhouette: silhouette_term(inputs, split, &surface, mesh, &edges, settings, &mut rng)?,
+            refraction,
+            silhouette,
             smoothness: smoothness_term(mesh, &edges, settings),
+            unseen: unseen_term(mesh, &edges, &coverage, settings, edge_mm),
         };
         used += terms.refraction.used;
         drops.add(&terms.refraction.drops);
@@ -430,6 +450,7 @@ fn run_stage(
         last,
         validation: None,
         averaged: false,
+        unseen_share: coverage.unseen_share(),
     };
     Ok((report, tail.mean()))
 }
@@ -462,6 +483,7 @@ struct Terms {
     refraction: TermValue,
     silhouette: TermValue,
     smoothness: TermValue,
+    unseen: TermValue,
 }
 
 impl Terms {
@@ -469,10 +491,11 @@ impl Terms {
     /// the iteration (stage `s`, iteration `it`) and the total gradient.
     fn combine(&self, settings: &Settings, (s, it): (usize, usize)) -> (IterationRecord, Vec<V3>) {
         let per_weight = |t: &TermValue| if t.weight > 0.0 { 1.0 / t.weight } else { 0.0 };
-        let (wr, ws, wm) = (
+        let (wr, ws, wm, wu) = (
             settings.weight_refraction * per_weight(&self.refraction),
             settings.weight_silhouette * per_weight(&self.silhouette),
             settings.weight_smoothness * per_weight(&self.smoothness),
+            settings.weight_unseen * per_weight(&self.unseen),
         );
         let mut record = IterationRecord {
             stage: s,
@@ -480,16 +503,15 @@ impl Terms {
             refraction: wr * self.refraction.loss,
             silhouette: ws * self.silhouette.loss,
             smoothness: wm * self.smoothness.loss,
+            unseen: wu * self.unseen.loss,
             total: 0.0,
         };
-        record.total = record.refraction + record.silhouette + record.smoothness;
-        let grad = self
-            .refraction
-            .grad
-            .iter()
+        record.total = record.refraction + record.silhouette + record.smoothness + record.unseen;
+        let grad = (self.refraction.grad.iter())
             .zip(&self.silhouette.grad)
             .zip(&self.smoothness.grad)
-            .map(|((a, b), c)| a * wr + b * ws + c * wm)
+            .zip(&self.unseen.grad)
+            .map(|(((a, b), c), d)| a * wr + b * ws + c * wm + d * wu)
             .collect();
         (record, grad)
     }
@@ -603,6 +625,25 @@ fn silhouette_over(
 fn smoothness_term(mesh: &TriMesh, edges: &[InteriorEdge], settings: &Settings) -> TermValue {
     let mut acc = Accumulator::new(mesh.positions.len(), false);
     add_smoothness(mesh, edges, settings.smoothness, &mut acc);
+    TermValue::from(acc, mesh)
+}
+
+/// The membrane term on the patches of vertices `coverage` says the refraction data has not seen
+/// (nothing at weight 0 or before the record is warm).
+fn unseen_term(
+    mesh: &TriMesh,
+    edges: &[InteriorEdge],
+    coverage: &Coverage,
+    settings: &Settings,
+    edge_mm: f64,
+) -> TermValue {
+    let mut acc = Accumulator::new(mesh.positions.len(), false);
+    let patches = (settings.weight_unseen > 0.0)
+        .then(|| coverage.unseen_patches(edges))
+        .flatten();
+    if let Some(patches) = patches {
+        add_membrane(mesh, edges, &patches, edge_mm, &mut acc);
+    }
     TermValue::from(acc, mesh)
 }
 

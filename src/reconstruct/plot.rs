@@ -74,11 +74,12 @@ fn plot_err<E: std::fmt::Display>(e: E) -> anyhow::Error {
 type Term = (&'static str, fn(&IterationRecord) -> f64, RGBColor);
 
 /// The plotted terms.
-const TERMS: [Term; 4] = [
+const TERMS: [Term; 5] = [
     ("total", |r| r.total, BLACK),
     ("refraction", |r| r.refraction, RGBColor(0, 80, 200)),
     ("silhouette", |r| r.silhouette, RGBColor(0, 140, 0)),
     ("smoothness", |r| r.smoothness, RGBColor(200, 0, 0)),
+    ("unseen (membrane)", |r| r.unseen, RGBColor(140, 0, 160)),
 ];
 
 /// Draws the weighted term means of a run's history (one point per iteration, stage boundaries
@@ -249,7 +250,9 @@ where
                 .map_err(plot_err)?;
         }
     }
-    for (name, value, colour) in TERMS {
+    // A term that is zero throughout (switched off) gets no line and no legend entry.
+    let present = |value: fn(&IterationRecord) -> f64| records.iter().any(|r| value(r) != 0.0);
+    for (name, value, colour) in TERMS.into_iter().filter(|t| present(t.1)) {
         let points = records
             .iter()
             .enumerate()

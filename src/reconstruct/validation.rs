@@ -269,6 +269,7 @@ mod tests {
                 ..Default::default()
             }),
             averaged: false,
+            unseen_share: 0.0,
         }
     }
 

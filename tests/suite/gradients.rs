@@ -5,6 +5,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use glasscan::loss::bits::PixelBits;
+use glasscan::loss::membrane::add_membrane;
 use glasscan::loss::refraction::{
     add_view, footprint_gradient_into, footprint_offsets, pixel_gradient, MeshState, PixelAxes,
     PixelGradient, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
@@ -592,24 +593,91 @@ fn smoothness_gradients_match_finite_differences() {
             add_smoothness(m, &edges, kind, &mut acc);
             acc
         };
-        let g = total(&mesh).grad;
-        let gmax = g.iter().map(|v| v.amax()).fold(0.0, f64::max);
-        let h = 1e-6;
-        for v in 0..mesh.positions.len() {
-            for a in 0..3 {
-                let mut m = mesh.clone();
-                m.positions[v][a] += h;
-                let lp = total(&m).loss;
-                m.positions[v][a] -= 2.0 * h;
-                let fd = (lp - total(&m).loss) / (2.0 * h);
-                assert!(
-                    (fd - g[v][a]).abs() <= 1e-5 * gmax + 1e-9,
-                    "{kind:?} vertex {v}: {fd} vs {}",
-                    g[v][a]
-                );
-            }
+        let label = format!("{kind:?}");
+        assert_mesh_gradient(&mesh, 0..mesh.positions.len(), total, 1e-5, &label);
+    }
+}
+
+/// Checks the gradient of the term `total` computes on `mesh` against central differences
+/// (step 1e-6 mm) at `vertices`: within `rel` of the largest component, or 1e-9.
+fn assert_mesh_gradient(
+    mesh: &TriMesh,
+    vertices: impl Iterator<Item = usize>,
+    total: impl Fn(&TriMesh) -> Accumulator,
+    rel: f64,
+    label: &str,
+) {
+    let g = total(mesh).grad;
+    let gmax = g.iter().map(|v| v.amax()).fold(0.0, f64::max);
+    assert!(gmax > 0.0, "{label}: no gradient");
+    let h = 1e-6;
+    for v in vertices {
+        for a in 0..3 {
+            let mut m = mesh.clone();
+            m.positions[v][a] += h;
+            let lp = total(&m).loss;
+            m.positions[v][a] -= 2.0 * h;
+            let fd = (lp - total(&m).loss) / (2.0 * h);
+            assert!(
+                (fd - g[v][a]).abs() <= rel * gmax + 1e-9,
+                "{label} vertex {v}: {fd} vs {}",
+                g[v][a]
+            );
         }
     }
+}
+
+#[test]
+fn membrane_gradients_match_finite_differences() {
+    let mut mesh = icosphere(3.0, 1);
+    perturb_radially(&mut mesh, 0.4, 8);
+    let edges = mesh.interior_edges();
+    // Every other vertex selected: unselected vertices still feel their selected neighbours'.
+    let selected: Vec<bool> = (0..mesh.positions.len()).map(|v| v % 2 == 0).collect();
+    let total = |m: &TriMesh| {
+        let mut acc = Accumulator::new(m.positions.len(), false);
+        add_membrane(m, &edges, &selected, 1.3, &mut acc);
+        acc
+    };
+    let acc = total(&mesh);
+    assert_eq!(
+        acc.weight,
+        mesh.positions.len() as f64,
+        "a mean over every vertex"
+    );
+    let touching = (edges.iter()).filter(|e| e.verts.iter().any(|&v| selected[v as usize]));
+    assert_eq!(acc.used, touching.count());
+    // The unselected vertices are the term's constants: no gradient on them.
+    assert!((0..mesh.positions.len()).all(|v| selected[v] || acc.grad[v] == Vector3::zeros()));
+    let moved = (0..mesh.positions.len()).filter(|&v| selected[v]);
+    assert_mesh_gradient(&mesh, moved, total, 1e-6, "membrane");
+}
+
+#[test]
+fn the_membrane_pulls_every_vertex_of_a_uniformly_bulged_patch_down() {
+    // The top of a box bulged by a paraboloid (uniform curvature) with its rim held: every
+    // interior vertex's gradient points up (descent lowers it), the centre's as much as those
+    // near the rim — the patch flattens as a whole.
+    let mut grid = glasscan::mesh::shapes::cuboid(Vector3::new(10.0, 10.0, 1.0), 10);
+    let edges = grid.interior_edges();
+    let inner = |p: &Point3<f64>| p.z > 0.49 && p.x.abs() < 4.9 && p.y.abs() < 4.9;
+    let top: Vec<bool> = grid.positions.iter().map(inner).collect();
+    for (p, t) in grid.positions.iter_mut().zip(&top) {
+        if *t {
+            p.z += 0.02 * (25.0 - p.x * p.x - p.y * p.y);
+        }
+    }
+    let mut acc = Accumulator::new(grid.positions.len(), false);
+    add_membrane(&grid, &edges, &top, 1.0, &mut acc);
+    let ups: Vec<f64> = (0..grid.positions.len())
+        .filter(|&v| top[v] && grid.positions[v].x.abs() < 3.5 && grid.positions[v].y.abs() < 3.5)
+        .map(|v| acc.grad[v].z)
+        .collect();
+    assert!(ups.len() >= 25);
+    let (lo, hi) = ups
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(l, h), &g| (l.min(g), h.max(g)));
+    assert!(lo > 0.0 && hi < 1.01 * lo, "uniform pull down: {lo} … {hi}");
 }
 
 fn ring_camera(w: u32, h: u32, f: f64, dist: [f64; 5]) -> Camera {
