@@ -154,6 +154,10 @@ fn one_f64() -> f64 {
     1.0
 }
 
+/// The membrane term's weight for flat-faced glass (`reconstruct --flat-faces`): the best of
+/// those measured on the block and the prism (docs/decisions.md).
+pub const FLAT_FACES_WEIGHT_UNSEEN: f64 = 10.0;
+
 /// The most stages of a schedule.
 pub const MAX_STAGES: usize = 100;
 /// The most iterations of a stage (and remesh iterations).
@@ -420,6 +424,15 @@ impl Settings {
             }
         }
         Ok(())
+    }
+
+    /// These settings for an object with flat faces (cut glass, blocks, prisms): the patches no
+    /// refraction ray sees are flattened ([`FLAT_FACES_WEIGHT_UNSEEN`]).
+    pub fn with_flat_faces(self) -> Self {
+        Settings {
+            weight_unseen: FLAT_FACES_WEIGHT_UNSEEN,
+            ..self
+        }
     }
 
     /// Stages in all, the warm-up included.

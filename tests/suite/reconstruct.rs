@@ -385,7 +385,8 @@ const PRISM_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.03\nfi
 
 /// A face seen only edge-on — the top and bottom of a prism on a level rig: every ray through
 /// them grazes or is totally reflected, and the visual hull bulges them — is left by the data
-/// terms where the hull put it; the membrane term on the patches no ray sees flattens it.
+/// terms where the hull put it; the membrane term on the patches no ray sees (`--flat-faces`)
+/// flattens it.
 #[test]
 fn faces_no_ray_sees_are_flattened_by_the_membrane() {
     let dir = tempfile::tempdir().unwrap();
@@ -400,17 +401,24 @@ fn faces_no_ray_sees_are_flattened_by_the_membrane() {
         ..Default::default()
     };
     simulate(&glasscan::mesh::shapes::cut_prism(), &scan, &opts, |_| ()).unwrap();
-    let run = |name: &str, weight: f64| {
-        let config = dir.path().join(format!("{name}.toml"));
-        let text = format!("{PRISM_CONFIG}weight_unseen = {weight}\n");
-        std::fs::write(&config, text).unwrap();
+    let config = dir.path().join("prism.toml");
+    std::fs::write(&config, PRISM_CONFIG).unwrap();
+    let run = |name: &str, flat_faces: bool| {
         let out = dir.path().join(name);
-        let o = glasscan(&reconstruct_args(&scan, &config, &out));
+        let mut args = reconstruct_args(&scan, &config, &out);
+        if flat_faces {
+            args.push("--flat-faces".into());
+        }
+        let o = glasscan(&args);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let report = std::fs::read_to_string(out.join("report.json")).unwrap();
+        let report: serde_json::Value = serde_json::from_str(&report).unwrap();
+        let weight = report["settings"]["weight_unseen"].as_f64().unwrap();
+        assert_eq!(weight > 0.0, flat_faces, "weight_unseen {weight}");
         (accuracy(&out.join("result.ply"), &scan), out)
     };
-    let (with, out) = run("with", 10.0);
-    let (without, _) = run("without", 0.0);
+    let (with, out) = run("with", true);
+    let (without, _) = run("without", false);
     let hull = hull_accuracy(&out, &scan);
     eprintln!("prism: hull {hull:.4} mm, with the membrane {with:.4}, without {without:.4}");
     assert!(
