@@ -420,10 +420,10 @@ fn run_one(
     dir: &Path,
     progress: &dyn Progress,
 ) -> Result<BenchRun> {
-    let settings = match case.flat_faces {
-        true => Settings::preset(case.preset).with_flat_faces(),
-        false => Settings::preset(case.preset),
-    };
+    let mut settings = Settings::preset(case.preset);
+    if case.flat_faces {
+        settings = settings.with_flat_faces();
+    }
     if dir.exists() {
         std::fs::remove_dir_all(dir).with_context(|| format!("cannot clear {}", dir.display()))?;
     }
