@@ -64,12 +64,6 @@ impl ObjectMesh {
         }
     }
 
-    /// Whether it has flat faces a level rig sees only edge-on, reconstructed as
-    /// `reconstruct --flat-faces` would (the block's and the prism's tops and bottoms).
-    pub fn flat_faced(&self) -> bool {
-        matches!(self, ObjectMesh::Block | ObjectMesh::Prism)
-    }
-
     /// What the logs call it.
     pub fn describe(&self) -> String {
         match self {

@@ -229,7 +229,6 @@ pub fn run_bench(
                 for &preset in &presets {
                     let case = Case {
                         object,
-                        flat_faces: object_mesh.flat_faced() && preset != Preset::Drt,
                         kind,
                         rig,
                         preset,
@@ -268,8 +267,6 @@ fn check_options(o: &BenchOptions) -> Result<()> {
 /// One reconstruction of the benchmark.
 struct Case<'a> {
     object: &'a str,
-    /// Reconstructed with [`Settings::with_flat_faces`] (not `drt`, DRT's own schedule).
-    flat_faces: bool,
     kind: ScanKind,
     rig: Rig,
     preset: Preset,
@@ -393,11 +390,10 @@ fn run_case(
     log: &dyn Fn(&str),
 ) -> Result<BenchRun> {
     log(&format!(
-        "{} ({}), {}{}, {} views{}",
+        "{} ({}), {}, {} views{}",
         case.object,
         case.kind,
         case.preset,
-        if case.flat_faces { " --flat-faces" } else { "" },
         case.views,
         budget.map_or(String::new(), |b| format!(", budget {b:.0} s"))
     ));
@@ -420,10 +416,7 @@ fn run_one(
     dir: &Path,
     progress: &dyn Progress,
 ) -> Result<BenchRun> {
-    let mut settings = Settings::preset(case.preset);
-    if case.flat_faces {
-        settings = settings.with_flat_faces();
-    }
+    let settings = Settings::preset(case.preset);
     if dir.exists() {
         std::fs::remove_dir_all(dir).with_context(|| format!("cannot clear {}", dir.display()))?;
     }

@@ -57,7 +57,7 @@ pub struct ReconstructBenchArgs {
     pub work: PathBuf,
     /// Objects, comma-separated: {object}_scan.ply in --meshes, `block` (a glass block with
     /// flat, parallel faces and rounded edges on a plinth) or `prism` (a cut prism, sharp edges),
-    /// both built in and reconstructed with `--flat-faces` (but by `drt`).
+    /// both built in.
     #[arg(
         long,
         value_delimiter = ',',

@@ -31,12 +31,6 @@ pub struct ReconstructArgs {
     /// A TOML file overriding any of the preset's settings (see the README).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// The object has flat faces (cut glass, a block, a prism): flatten the patches no
-    /// refraction ray passes through (faces the camera sees only edge-on, which the visual hull
-    /// bulges) — `weight_unseen = 10`, which a --config file may still set. Not for smooth
-    /// objects: it flattens a rounded cap seen edge-on too.
-    #[arg(long)]
-    pub flat_faces: bool,
     /// Continue the run in the output folder from its last checkpoint.
     #[arg(long)]
     pub resume: bool,
@@ -86,12 +80,9 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
     print_summary(a, &outcome)
 }
 
-/// The preset, with `--flat-faces`, the config file's keys and the seed applied, range-checked.
+/// The preset, with the config file's keys and the seed applied, range-checked.
 fn settings(a: &ReconstructArgs) -> Result<Settings> {
     let mut settings = Settings::preset(a.preset);
-    if a.flat_faces {
-        settings = settings.with_flat_faces();
-    }
     if let Some(path) = &a.config {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read {}", path.display()))?;

@@ -141,7 +141,10 @@ pub struct Settings {
     pub average_share: f64,
     /// Weight of the membrane term ([`crate::loss::membrane`]) on the vertices no compared
     /// refraction ray's path has touched in the stage so far (faces seen only edge-on), relative
-    /// to the other terms; it starts once every fitted view has had about one sample. 0: off.
+    /// to the other terms; it starts once every fitted view has had about one sample. The run
+    /// judges it on its first stage after the warm-up and keeps it for the later stages only
+    /// if that stage had such a face and did not make the held-out outlines worse
+    /// ([`crate::reconstruct::MembraneVerdict`]). 0: off.
     #[serde(default)]
     pub weight_unseen: f64,
 }
@@ -153,10 +156,6 @@ fn one() -> u32 {
 fn one_f64() -> f64 {
     1.0
 }
-
-/// The membrane term's weight for flat-faced glass (`reconstruct --flat-faces`): the best of
-/// those measured on the block and the prism (docs/decisions.md).
-pub const FLAT_FACES_WEIGHT_UNSEEN: f64 = 10.0;
 
 /// The most stages of a schedule.
 pub const MAX_STAGES: usize = 100;
@@ -253,7 +252,7 @@ impl Settings {
             weight_bits: 0.01,
             robust_anneal: 1.0,
             average_share: 0.5,
-            weight_unseen: 0.0,
+            weight_unseen: 10.0,
         };
         match preset {
             Preset::Fast => base,
@@ -424,15 +423,6 @@ impl Settings {
             }
         }
         Ok(())
-    }
-
-    /// These settings for an object with flat faces (cut glass, blocks, prisms): the patches no
-    /// refraction ray sees are flattened ([`FLAT_FACES_WEIGHT_UNSEEN`]).
-    pub fn with_flat_faces(self) -> Self {
-        Settings {
-            weight_unseen: FLAT_FACES_WEIGHT_UNSEEN,
-            ..self
-        }
     }
 
     /// Stages in all, the warm-up included.

@@ -76,6 +76,7 @@ pub struct StageReport {
     pub edge_mm: f64,
     pub vertices: usize,
     pub faces: usize,
+    /// Wall time of the stage, s (the stage that judges the membrane term: both its runs).
     pub seconds: f64,
     pub refraction_rays_used: usize,
     pub refraction_drops: Drops,
@@ -93,6 +94,10 @@ pub struct StageReport {
     /// stage (faces seen only edge-on, or hidden; the membrane term acts there, `weight_unseen`).
     #[serde(default)]
     pub unseen_share: f64,
+    /// The largest share of the stage mesh's vertices the membrane term acted on in one
+    /// iteration (0: no unseen patch, or the term off).
+    #[serde(default)]
+    pub membrane_share: f64,
 }
 
 /// The state saved after every stage.
@@ -113,6 +118,9 @@ pub struct Checkpoint {
     /// The warm-up judged against the start mesh on the held-out views, once it has ended.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warm_up: Option<WarmUpVerdict>,
+    /// The membrane term judged on the first stage after the warm-up, once it has ended.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub membrane: Option<MembraneVerdict>,
 }
 
 /// Whether the warm-up made the mesh fit the held-out views better: DRT's steps carve what the
@@ -127,6 +135,38 @@ pub struct WarmUpVerdict {
     /// True: the next stages start from the start mesh.
     pub discarded: bool,
 }
+
+/// Whether the membrane term ([`Settings::weight_unseen`]) acts after the first stage that
+/// follows the warm-up (the judged stage). A face seen only edge-on (a block's top) is unseen at
+/// that stage's coarse edges already, and flattening it is right; a rounded cap seen edge-on is
+/// unseen too, and flattening it makes the held-out outlines, which show its profile, fit
+/// several times worse than the same stage without the term. A face seen edge-on is a large part
+/// of the surface at those edges; patches that are a few percent there, or appear only at finer
+/// edges, are a cap's pole or curved detail no ray happened to touch: the term stays off when
+/// it acted on less than [`MEMBRANE_MIN_SHARE`] of the judged stage's vertices.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MembraneVerdict {
+    /// The largest share of the judged stage's vertices the term acted on in one iteration.
+    pub share: f64,
+    /// Held-out silhouette term of the judged stage's mesh with the term and of the same stage
+    /// run without it (`None`: not run, as no patch formed or no views are held out).
+    pub silhouette_with: Option<f64>,
+    pub silhouette_without: Option<f64>,
+    /// True: the judged stage's mesh is the one with the term, and the term acts in the later
+    /// stages; false: the stage without it stands (when the term acted) and the term is off.
+    pub kept: bool,
+}
+
+/// The judged stage's held-out silhouette term with the membrane over without it above which
+/// the term is rejected: measured 0.97–1.21 on the block and the prism, where flattening was
+/// right, and 4.7 on the demo's pebble, where it was wrong (docs/decisions.md).
+pub const MEMBRANE_SILHOUETTE_RATIO: f64 = 2.0;
+
+/// The smallest share of the judged stage's vertices the membrane term must have acted on to be
+/// kept: the block's top and bottom are 21 % of its vertices at its first Large Steps stage, the
+/// prism's 27 %; a small pebble's poles at coarse edges 3 % (the term then flattened them in the
+/// later stages), the dog's at 1280×960 2 % (docs/decisions.md).
+pub const MEMBRANE_MIN_SHARE: f64 = 0.05;
 
 /// Where a fresh run starts.
 pub enum Start<'a> {
@@ -187,7 +227,12 @@ pub fn run(
                 complete: false,
             });
         }
+        let judged = ck.stages_done == settings.warmup_stages && settings.weight_unseen > 0.0;
+        let before = judged.then(|| mesh.clone());
         mesh = run_next_stage(inputs, &split, &mut ck, &mesh, progress)?;
+        if let Some(before) = before {
+            mesh = judge_membrane(inputs, &split, &mut ck, &before, mesh, progress)?;
+        }
         write_mesh(&stage_path(out, ck.stages_done - 1), &mesh)?;
         if ck.stages_done == settings.warmup_stages {
             mesh = judge_warm_up(inputs, &split, &mut ck, mesh, out, progress)?;
@@ -227,6 +272,7 @@ fn begin_run(
         history: Vec::new(),
         stages: Vec::new(),
         warm_up: None,
+        membrane: None,
     };
     commit(out, &ck)?;
     Ok((ck, mesh))
@@ -288,6 +334,129 @@ fn judge_warm_up(
     Ok(if discarded { start } else { warmed })
 }
 
+/// Judges the membrane term on the stage that just ended (the first after the warm-up; its mesh
+/// `judged`, started from `before`): when the term acted, runs the stage again without it; the
+/// term's run stands, and the term stays on, when it acted on at least [`MEMBRANE_MIN_SHARE`] of
+/// the vertices and its held-out outlines are within [`MEMBRANE_SILHOUETTE_RATIO`] of the other
+/// run's (without views held out, on the share alone). Returns the mesh the next stages start
+/// from, the verdict recorded in `ck`.
+fn judge_membrane(
+    inputs: &Inputs,
+    split: &Split,
+    ck: &mut Checkpoint,
+    before: &TriMesh,
+    judged: TriMesh,
+    progress: &dyn Progress,
+) -> Result<TriMesh> {
+    let stage = ck.stages.last().expect("a stage has just ended");
+    let (s, share) = (stage.stage, stage.membrane_share);
+    let silhouette_with = stage.validation.as_ref().map(|v| v.silhouette);
+    let large = share >= MEMBRANE_MIN_SHARE;
+    let unjudged = MembraneVerdict {
+        share,
+        silhouette_with,
+        silhouette_without: None,
+        kept: large,
+    };
+    if share == 0.0 || (large && silhouette_with.is_none()) {
+        progress.note(if share == 0.0 {
+            "no face is unseen at the first stage's edges: the membrane term stays off"
+        } else {
+            "no views held out: the membrane term is kept unjudged"
+        });
+        ck.membrane = Some(unjudged);
+        return Ok(judged);
+    }
+    progress.note(&format!(
+        "the membrane term acted on {:.0} % of the vertices: stage {} again without it, to judge it",
+        100.0 * share,
+        s + 1
+    ));
+    let with = SetAside::take(ck, judged);
+    ck.membrane = Some(MembraneVerdict {
+        kept: false,
+        ..unjudged.clone()
+    });
+    let without = run_next_stage(inputs, split, ck, before, progress)?;
+    let silhouette_without =
+        (ck.stages.last().and_then(|r| r.validation.as_ref())).map(|v| v.silhouette);
+    let ratio = silhouette_with.unwrap_or(f64::NAN) / silhouette_without.unwrap_or(f64::NAN);
+    let kept = large && (ratio.is_nan() || ratio <= MEMBRANE_SILHOUETTE_RATIO);
+    progress.note(&membrane_verdict_line(share, ratio, kept));
+    ck.membrane = Some(MembraneVerdict {
+        silhouette_without,
+        kept,
+        ..unjudged
+    });
+    Ok(if kept {
+        with.restore(ck)
+    } else {
+        with.charge_time(ck, without)
+    })
+}
+
+/// What the run says of the membrane term's verdict.
+fn membrane_verdict_line(share: f64, ratio: f64, kept: bool) -> String {
+    let outlines = if ratio.is_nan() {
+        "no views held out to compare the outlines with and without the membrane term".to_string()
+    } else {
+        format!("held-out outlines with the membrane term {ratio:.2}× as far as without")
+    };
+    if kept {
+        format!("{outlines}: kept (the stage with it stands)")
+    } else if share < MEMBRANE_MIN_SHARE {
+        format!(
+            "{outlines}; it acted on under {:.0} % of the vertices, no face seen edge-on: dropped",
+            100.0 * MEMBRANE_MIN_SHARE
+        )
+    } else {
+        format!("{outlines}: dropped (a rounded face, not a flat one)")
+    }
+}
+
+/// A stage's run set aside while the same stage runs again: its report, iterations and mesh.
+struct SetAside {
+    report: StageReport,
+    history: Vec<IterationRecord>,
+    mesh: TriMesh,
+}
+
+impl SetAside {
+    /// Takes the last stage (its mesh `mesh`) out of `ck`, which then has it still to run.
+    fn take(ck: &mut Checkpoint, mesh: TriMesh) -> Self {
+        let report = ck.stages.pop().expect("a stage has just ended");
+        let (earlier, history) = ck.history.drain(..).partition(|r| r.stage != report.stage);
+        ck.history = earlier;
+        ck.stages_done -= 1;
+        Self {
+            report,
+            history,
+            mesh,
+        }
+    }
+
+    /// Puts this run back in place of the stage's other run in `ck`, with both runs' time;
+    /// returns its mesh.
+    fn restore(self, ck: &mut Checkpoint) -> TriMesh {
+        let other = ck.stages.pop().expect("the stage has run again");
+        ck.history.retain(|r| r.stage != other.stage);
+        ck.history.extend(self.history);
+        ck.stages.push(StageReport {
+            seconds: self.report.seconds + other.seconds,
+            ..self.report
+        });
+        self.mesh
+    }
+
+    /// Adds this run's time to the stage's other run in `ck`, which stands (its mesh `mesh`).
+    fn charge_time(self, ck: &mut Checkpoint, mesh: TriMesh) -> TriMesh {
+        if let Some(other) = ck.stages.last_mut() {
+            other.seconds += self.report.seconds;
+        }
+        mesh
+    }
+}
+
 /// The share of the start mesh's area whose thickness is its "thin parts" (see
 /// [`Checkpoint::thin_part_mm`]).
 const THIN_SHARE: f64 = 0.02;
@@ -319,7 +488,10 @@ fn run_next_stage(
 ) -> Result<TriMesh> {
     let s = ck.stages_done;
     let t0 = Instant::now();
-    let (phase, k) = ck.settings.stage(s);
+    let (mut phase, k) = ck.settings.stage(s);
+    if ck.membrane.as_ref().is_some_and(|m| !m.kept) {
+        phase.weight_unseen = 0.0;
+    }
     let edge_mm = stage_edge_mm(ck, &phase, s, k);
     if s == 0 && edge_mm < phase.edge_mm(k, ck.diagonal_mm) {
         progress.note(&format!(
@@ -410,17 +582,20 @@ fn run_stage(
         .len()
         .div_ceil(settings.refraction_views.max(1));
     let mut coverage = Coverage::new(mesh.positions.len(), warm_in);
+    let mut membrane_share = 0.0f64;
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(settings.seed ^ ((s as u64) << 40) ^ it as u64);
         let refraction = refraction_term(inputs, split, &surface, mesh, settings, &mut rng)?;
         let silhouette =
             silhouette_term(inputs, split, &surface, mesh, &edges, settings, &mut rng)?;
         coverage.record(&refraction.grad);
+        let (unseen, share) = unseen_term(mesh, &edges, &coverage, settings, edge_mm);
+        membrane_share = membrane_share.max(share);
         let terms = Terms {
             refraction,
             silhouette,
             smoothness: smoothness_term(mesh, &edges, settings),
-            unseen: unseen_term(mesh, &edges, &coverage, settings, edge_mm),
+            unseen,
         };
         used += terms.refraction.used;
         drops.add(&terms.refraction.drops);
@@ -451,6 +626,7 @@ fn run_stage(
         validation: None,
         averaged: false,
         unseen_share: coverage.unseen_share(),
+        membrane_share,
     };
     Ok((report, tail.mean()))
 }
@@ -629,22 +805,24 @@ fn smoothness_term(mesh: &TriMesh, edges: &[InteriorEdge], settings: &Settings) 
 }
 
 /// The membrane term on the patches of vertices `coverage` says the refraction data has not seen
-/// (nothing at weight 0 or before the record is warm).
+/// (nothing at weight 0 or before the record is warm), and the share of the vertices it acts on.
 fn unseen_term(
     mesh: &TriMesh,
     edges: &[InteriorEdge],
     coverage: &Coverage,
     settings: &Settings,
     edge_mm: f64,
-) -> TermValue {
+) -> (TermValue, f64) {
     let mut acc = Accumulator::new(mesh.positions.len(), false);
     let patches = (settings.weight_unseen > 0.0)
         .then(|| coverage.unseen_patches(edges))
         .flatten();
+    let mut share = 0.0;
     if let Some(patches) = patches {
+        share = patches.iter().filter(|p| **p).count() as f64 / patches.len().max(1) as f64;
         add_membrane(mesh, edges, &patches, edge_mm, &mut acc);
     }
-    TermValue::from(acc, mesh)
+    (TermValue::from(acc, mesh), share)
 }
 
 /// Checks the mesh at the end of stage `s` (closed, manifold, outward); returns its count of
@@ -727,6 +905,7 @@ mod tests {
             history: Vec::new(),
             stages: Vec::new(),
             warm_up: None,
+            membrane: None,
         }
     }
 

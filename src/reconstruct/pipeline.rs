@@ -159,6 +159,7 @@ fn write_results(out: &Path, finished: &Finished, result: &TriMesh, r: &Report) 
         "seconds_stages": ck.stages.iter().map(|s| s.seconds).sum::<f64>(),
         "stages": ck.stages,
         "warm_up": ck.warm_up,
+        "membrane": ck.membrane,
         "result_stage": r.result_stage + 1,
         "result_mesh": quality(result),
         "evaluation_against_ground_truth": r.evaluation.map(|e| e.to_json()),

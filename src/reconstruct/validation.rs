@@ -270,6 +270,7 @@ mod tests {
             }),
             averaged: false,
             unseen_share: 0.0,
+            membrane_share: 0.0,
         }
     }
 

@@ -385,8 +385,8 @@ const PRISM_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.03\nfi
 
 /// A face seen only edge-on — the top and bottom of a prism on a level rig: every ray through
 /// them grazes or is totally reflected, and the visual hull bulges them — is left by the data
-/// terms where the hull put it; the membrane term on the patches no ray sees (`--flat-faces`)
-/// flattens it.
+/// terms where the hull put it; the membrane term on the patches no ray sees (on by default,
+/// judged on the first stage) flattens it, and the run keeps it.
 #[test]
 fn faces_no_ray_sees_are_flattened_by_the_membrane() {
     let dir = tempfile::tempdir().unwrap();
@@ -401,26 +401,28 @@ fn faces_no_ray_sees_are_flattened_by_the_membrane() {
         ..Default::default()
     };
     simulate(&glasscan::mesh::shapes::cut_prism(), &scan, &opts, |_| ()).unwrap();
-    let config = dir.path().join("prism.toml");
-    std::fs::write(&config, PRISM_CONFIG).unwrap();
-    let run = |name: &str, flat_faces: bool| {
+    let run = |name: &str, extra: &str| {
+        let config = dir.path().join(format!("{name}.toml"));
+        std::fs::write(&config, format!("{PRISM_CONFIG}{extra}")).unwrap();
         let out = dir.path().join(name);
-        let mut args = reconstruct_args(&scan, &config, &out);
-        if flat_faces {
-            args.push("--flat-faces".into());
-        }
-        let o = glasscan(&args);
+        let o = glasscan(&reconstruct_args(&scan, &config, &out));
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let report = std::fs::read_to_string(out.join("report.json")).unwrap();
         let report: serde_json::Value = serde_json::from_str(&report).unwrap();
-        let weight = report["settings"]["weight_unseen"].as_f64().unwrap();
-        assert_eq!(weight > 0.0, flat_faces, "weight_unseen {weight}");
-        (accuracy(&out.join("result.ply"), &scan), out)
+        (accuracy(&out.join("result.ply"), &scan), report, out)
     };
-    let (with, out) = run("with", true);
-    let (without, _) = run("without", false);
+    let (with, report, out) = run("with", "");
+    let (without, off, _) = run("without", "weight_unseen = 0.0\n");
     let hull = hull_accuracy(&out, &scan);
     eprintln!("prism: hull {hull:.4} mm, with the membrane {with:.4}, without {without:.4}");
+    let verdict = &report["membrane"];
+    assert_eq!(verdict["kept"], true, "{verdict}");
+    assert!(verdict["share"].as_f64().unwrap() > 0.05, "{verdict}");
+    assert!(
+        verdict["silhouette_without"].as_f64().unwrap() > 0.0,
+        "{verdict}"
+    );
+    assert!(off["membrane"].is_null(), "{}", off["membrane"]);
     assert!(
         with < MARGIN * without,
         "{with} against {without} without the membrane"
