@@ -142,9 +142,9 @@ pub struct Settings {
     /// Weight of the membrane term ([`crate::loss::membrane`]) on the vertices no compared
     /// refraction ray's path has touched in the stage so far (faces seen only edge-on), relative
     /// to the other terms; it starts once every fitted view has had about one sample. The run
-    /// judges it on its first stage after the warm-up and keeps it for the later stages only
-    /// if that stage had such a face and did not make the held-out outlines worse
-    /// ([`crate::reconstruct::MembraneVerdict`]). 0: off.
+    /// judges it on its first stage after the warm-up, which runs again without it, and keeps
+    /// it only if it acted there on a large share of the vertices and left the held-out outlines
+    /// within a factor of the run without it ([`crate::reconstruct::MembraneVerdict`]). 0: off.
     #[serde(default)]
     pub weight_unseen: f64,
 }

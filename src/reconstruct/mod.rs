@@ -158,8 +158,8 @@ pub struct MembraneVerdict {
 }
 
 /// The judged stage's held-out silhouette term with the membrane over without it above which
-/// the term is rejected: measured 0.97–1.21 on the block and the prism, where flattening was
-/// right, and 4.7 on the demo's pebble, where it was wrong (docs/decisions.md).
+/// the term is rejected: measured 0.98–1.44 on the block's and the prism's scans, where
+/// flattening was right, and 4.75 on the demo's pebble, where it was wrong (docs/decisions.md).
 pub const MEMBRANE_SILHOUETTE_RATIO: f64 = 2.0;
 
 /// The smallest share of the judged stage's vertices the membrane term must have acted on to be
