@@ -373,6 +373,7 @@ fn judge_membrane(
         s + 1
     ));
     let with = SetAside::take(ck, judged);
+    // The stage's second run reads the verdict: the term off.
     ck.membrane = Some(MembraneVerdict {
         kept: false,
         ..unjudged.clone()
@@ -388,11 +389,11 @@ fn judge_membrane(
         kept,
         ..unjudged
     });
-    Ok(if kept {
-        with.restore(ck)
-    } else {
-        with.charge_time(ck, without)
-    })
+    if !kept {
+        with.discard(ck);
+        return Ok(without);
+    }
+    Ok(with.restore(ck))
 }
 
 /// What the run says of the membrane term's verdict.
@@ -448,12 +449,11 @@ impl SetAside {
         self.mesh
     }
 
-    /// Adds this run's time to the stage's other run in `ck`, which stands (its mesh `mesh`).
-    fn charge_time(self, ck: &mut Checkpoint, mesh: TriMesh) -> TriMesh {
+    /// Drops this run; its time goes to the stage's other run in `ck`, which stands.
+    fn discard(self, ck: &mut Checkpoint) {
         if let Some(other) = ck.stages.last_mut() {
             other.seconds += self.report.seconds;
         }
-        mesh
     }
 }
 

@@ -12,6 +12,7 @@ use std::sync::{Mutex, MutexGuard};
 
 use glasscan::mesh::TriMesh;
 use glasscan::simulate::{simulate, SimulateOptions};
+use glasscan::trace::path::NormalModel;
 
 static SPAWN: Mutex<()> = Mutex::new(());
 
@@ -94,11 +95,17 @@ pub fn s(p: &Path) -> &str {
 
 /// A scan of `mesh` with decoded correspondences only (no captures): `views` views at
 /// `width`×`height` pixels, one sample per pixel, the simulator's default rig.
-pub fn decoded_scan(
+pub fn decoded_scan(dir: &Path, mesh: &TriMesh, views: usize, size: (u32, u32)) -> PathBuf {
+    decoded_scan_with_normals(dir, mesh, views, size, NormalModel::Vertex)
+}
+
+/// [`decoded_scan`] with the object refracting at `normals` (flat facets: `Face`).
+pub fn decoded_scan_with_normals(
     dir: &Path,
     mesh: &TriMesh,
     views: usize,
     (width, height): (u32, u32),
+    normals: NormalModel,
 ) -> PathBuf {
     let opts = SimulateOptions {
         views,
@@ -106,6 +113,7 @@ pub fn decoded_scan(
         height,
         spp: 1,
         decoded_only: true,
+        normals,
         ..Default::default()
     };
     simulate(mesh, dir, &opts, |_| ()).expect("simulate a small scan");

@@ -409,16 +409,8 @@ const PRISM_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.03\nfi
 fn faces_no_ray_sees_are_flattened_by_the_membrane() {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
-    let opts = SimulateOptions {
-        views: 24,
-        width: 320,
-        height: 240,
-        spp: 1,
-        decoded_only: true,
-        normals: NormalModel::Face,
-        ..Default::default()
-    };
-    simulate(&glasscan::mesh::shapes::cut_prism(), &scan, &opts, |_| ()).unwrap();
+    let prism = glasscan::mesh::shapes::cut_prism();
+    crate::common::decoded_scan_with_normals(&scan, &prism, 24, (320, 240), NormalModel::Face);
     let run = |name: &str, extra: &str| {
         let config = dir.path().join(format!("{name}.toml"));
         std::fs::write(&config, format!("{PRISM_CONFIG}{extra}")).unwrap();
