@@ -147,6 +147,13 @@ pub struct Settings {
     /// within a factor of the run without it ([`crate::reconstruct::MembraneVerdict`]). 0: off.
     #[serde(default)]
     pub weight_unseen: f64,
+    /// In the stages whose target edge is shorter than this share of the diagonal, Large Steps'
+    /// λ and the smoothness weight are raised by (this / the stage's edge)², so that both hold
+    /// the surface over as many millimetres as at this edge: λ acts on the combinatorial
+    /// Laplacian, whose reach is about √λ edges, and the smoothness term is a mean over edges
+    /// whose dihedral angles on a given bend shrink with the edge. 0: the same in every stage.
+    #[serde(default)]
+    pub smoothing_edge: f64,
 }
 
 fn one() -> u32 {
@@ -253,6 +260,7 @@ impl Settings {
             robust_anneal: 1.0,
             average_share: 0.5,
             weight_unseen: 10.0,
+            smoothing_edge: 0.0,
         };
         match preset {
             Preset::Fast => base,
@@ -270,6 +278,9 @@ impl Settings {
                 refraction_views: 4,
                 silhouette_views: 8,
                 remesh_iterations: 10,
+                // Its stages finer than about `balanced`'s second (1/155 of the diagonal) smooth
+                // as far in millimetres as that one (docs/decisions.md).
+                smoothing_edge: 0.0065,
                 ..base
             },
             // DRT's schedule, optimiser and terms. DRT sums its terms (weights 40·217.5/H² per
@@ -378,6 +389,12 @@ impl Settings {
         if !(0.0..1.0).contains(&self.average_share) {
             return bad("average_share", "must lie in [0, 1)");
         }
+        if !(0.0..=1.0).contains(&self.smoothing_edge) {
+            return bad(
+                "smoothing_edge",
+                "must lie in [0, 1] (a share of the diagonal; 0: off)",
+            );
+        }
         Ok(())
     }
 
@@ -452,6 +469,8 @@ impl Settings {
             };
             let stage = Settings {
                 robust: self.robust.scaled(self.robust_anneal.powf(left)),
+                optimizer: self.stage_optimizer(k),
+                weight_smoothness: self.weight_smoothness * self.smoothing_gain(k),
                 ..self.clone()
             };
             (stage, k)
@@ -461,13 +480,33 @@ impl Settings {
     /// Target edge length of stage `s` of this schedule (mm) for an initial bounding-box
     /// diagonal `diag`.
     pub fn edge_mm(&self, s: usize, diag: f64) -> f64 {
+        diag * self.edge_share(s)
+    }
+
+    /// Target edge length of stage `s` of this schedule as a share of the diagonal.
+    fn edge_share(&self, s: usize) -> f64 {
         let t = if self.stages > 1 {
             s as f64 / (self.stages - 1) as f64
         } else {
             1.0
         };
-        let inv = (1.0 - t) / self.start_edge + t / self.final_edge;
-        diag / inv
+        1.0 / ((1.0 - t) / self.start_edge + t / self.final_edge)
+    }
+
+    /// The optimiser of stage `s` of this schedule: Large Steps' λ raised by
+    /// [`Self::smoothing_gain`].
+    fn stage_optimizer(&self, s: usize) -> Optimizer {
+        let mut o = self.optimizer;
+        if let Optimizer::LargeSteps { lambda, .. } = &mut o {
+            *lambda *= self.smoothing_gain(s);
+        }
+        o
+    }
+
+    /// How much stage `s` raises λ and the smoothness weight: (smoothing_edge / its edge)², at
+    /// least 1.
+    fn smoothing_gain(&self, s: usize) -> f64 {
+        (self.smoothing_edge / self.edge_share(s)).powi(2).max(1.0)
     }
 }
 
@@ -492,5 +531,45 @@ mod tests {
         assert_eq!(TargetWeights::Cell.weight(&cell(4.0)), 1.0 / 16.0);
         assert_eq!(TargetWeights::Uniform.weight(&cell(4.0)), 1.0);
         assert!(s.with_overrides("target_weights = \"area\"\n").is_err());
+    }
+
+    #[test]
+    fn smoothing_is_raised_only_in_stages_finer_than_the_smoothing_edge() {
+        let lambda_of = |s: &Settings, g: usize| match s.stage(g).0.optimizer {
+            Optimizer::LargeSteps { lambda, .. } => lambda,
+            Optimizer::Sgd { .. } => f64::NAN,
+        };
+        let raised = Settings::preset(Preset::Accurate);
+        assert_eq!(raised.smoothing_edge, 0.0065);
+        let plain = raised
+            .clone()
+            .with_overrides("smoothing_edge = 0.0\n")
+            .unwrap();
+        let w = plain.warmup_stages;
+        for k in 0..plain.stages {
+            let edge = plain.edge_share(k);
+            let expected = 20.0 * (raised.smoothing_edge / edge).powi(2).max(1.0);
+            assert_eq!(lambda_of(&plain, w + k), 20.0, "stage {k}");
+            assert!(
+                (lambda_of(&raised, w + k) - expected).abs() < 1e-9,
+                "stage {k}"
+            );
+            let smooth = raised.stage(w + k).0.weight_smoothness;
+            assert!((smooth - 0.05 * expected / 20.0).abs() < 1e-12, "stage {k}");
+            assert_eq!(plain.stage(w + k).0.weight_smoothness, 0.05, "stage {k}");
+        }
+        // The warm-up's DRT stages keep DRT's weight.
+        let drt = Settings::preset(Preset::Drt).weight_smoothness;
+        assert_eq!(raised.stage(0).0.weight_smoothness, drt);
+        // The last stage (1/350 of the diagonal) smooths as far in millimetres as 0.0065 does;
+        // the first two (1/60, 1/132.5) as before.
+        let last = lambda_of(&raised, w + plain.stages - 1);
+        assert!((last - 20.0 * (350.0f64 * 0.0065).powi(2)).abs() < 1e-9);
+        assert_eq!(lambda_of(&raised, w + 1), 20.0);
+        assert!(plain
+            .with_overrides("smoothing_edge = -1\n")
+            .unwrap()
+            .check()
+            .is_err());
     }
 }
