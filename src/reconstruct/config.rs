@@ -156,6 +156,16 @@ pub struct Settings {
     pub smoothing_edge: f64,
 }
 
+impl Optimizer {
+    /// This optimiser with Large Steps' λ multiplied by `gain` (SGD has none).
+    fn with_lambda_gain(mut self, gain: f64) -> Self {
+        if let Optimizer::LargeSteps { lambda, .. } = &mut self {
+            *lambda *= gain;
+        }
+        self
+    }
+}
+
 fn one() -> u32 {
     1
 }
@@ -467,10 +477,11 @@ impl Settings {
             } else {
                 0.0
             };
+            let gain = self.smoothing_gain(k);
             let stage = Settings {
                 robust: self.robust.scaled(self.robust_anneal.powf(left)),
-                optimizer: self.stage_optimizer(k),
-                weight_smoothness: self.weight_smoothness * self.smoothing_gain(k),
+                optimizer: self.optimizer.with_lambda_gain(gain),
+                weight_smoothness: self.weight_smoothness * gain,
                 ..self.clone()
             };
             (stage, k)
@@ -491,16 +502,6 @@ impl Settings {
             1.0
         };
         1.0 / ((1.0 - t) / self.start_edge + t / self.final_edge)
-    }
-
-    /// The optimiser of stage `s` of this schedule: Large Steps' λ raised by
-    /// [`Self::smoothing_gain`].
-    fn stage_optimizer(&self, s: usize) -> Optimizer {
-        let mut o = self.optimizer;
-        if let Optimizer::LargeSteps { lambda, .. } = &mut o {
-            *lambda *= self.smoothing_gain(s);
-        }
-        o
     }
 
     /// How much stage `s` raises λ and the smoothness weight: (smoothing_edge / its edge)², at
