@@ -192,6 +192,10 @@ pub struct BenchRun {
     pub result_stage: usize,
     pub stages: usize,
     pub accuracy_mm: f64,
+    /// The accuracy with distances inside the true mesh counted negative (mm, > 0: the result
+    /// is too large); absent from runs recorded before it existed.
+    #[serde(default)]
+    pub signed_accuracy_mm: Option<f64>,
     pub completeness_mm: f64,
     pub fscore_05: f64,
     pub fscore_1: f64,
@@ -400,8 +404,13 @@ fn run_case(
     let dir = work.join("runs").join(case.label());
     let r = run_one(case, scan, truth, budget, &dir, progress)?;
     log(&format!(
-        "  {:.1} s, accuracy {:.3} mm, completeness {:.3} mm, F@0.5 {:.3}, F@1 {:.3}",
-        r.seconds, r.accuracy_mm, r.completeness_mm, r.fscore_05, r.fscore_1
+        "  {:.1} s, accuracy {:.3} mm (signed {:+.3}), completeness {:.3} mm, F@0.5 {:.3}, F@1 {:.3}",
+        r.seconds,
+        r.accuracy_mm,
+        r.signed_accuracy_mm.unwrap_or(f64::NAN),
+        r.completeness_mm,
+        r.fscore_05,
+        r.fscore_1
     ));
     Ok(r)
 }
@@ -465,6 +474,7 @@ fn run_one(
         result_stage: s + 1,
         stages: settings.total_stages(),
         accuracy_mm: e.accuracy_mm,
+        signed_accuracy_mm: Some(e.signed_accuracy_mm),
         completeness_mm: e.completeness_mm,
         fscore_05: f(0.5),
         fscore_1: f(1.0),
@@ -520,11 +530,11 @@ fn stage_curve(
 /// Writes results.json, results.md and time_vs_accuracy.png.
 fn write_results(work: &Path, results: &[BenchRun]) -> Result<()> {
     let mut md = String::from(
-        "| object | scan | preset | views | time (s) | accuracy (mm) | completeness (mm) | F@0.5 mm | F@1 mm | stages | result |\n|---|---|---|---:|---:|---:|---:|---:|---:|---|---:|\n",
+        "| object | scan | preset | views | time (s) | accuracy (mm) | signed (mm) | completeness (mm) | F@0.5 mm | F@1 mm | stages | result |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|\n",
     );
     for r in results {
         md += &format!(
-            "| {}{} | {} | {} | {} | {:.0} | {:.3} | {:.3} | {:.3} | {:.3} | {}/{} | {} |\n",
+            "| {}{} | {} | {} | {} | {:.0} | {:.3} | {} | {:.3} | {:.3} | {:.3} | {}/{} | {} |\n",
             r.object,
             if r.rig.large_monitor {
                 " (32\" monitor)"
@@ -536,6 +546,8 @@ fn write_results(work: &Path, results: &[BenchRun]) -> Result<()> {
             r.views,
             r.seconds,
             r.accuracy_mm,
+            r.signed_accuracy_mm
+                .map_or("–".to_string(), |v| format!("{v:+.3}")),
             r.completeness_mm,
             r.fscore_05,
             r.fscore_1,

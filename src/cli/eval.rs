@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::Args;
 
-use crate::eval::error_map::write_error_map;
+use crate::eval::error_map::{write_error_map, ErrorScale};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::mesh::io::read_mesh;
 use crate::trace::{BuildMode, Device, Scene};
@@ -41,6 +41,10 @@ pub struct EvalArgs {
     /// The distance shown red in the error map, mm (default: the largest F-score threshold).
     #[arg(long = "error-max-mm", value_parser = super::common::positive)]
     pub error_max_mm: Option<f64>,
+    /// Colour the error map by the signed distance: blue where the result lies inside the
+    /// reference, red where it lies outside.
+    #[arg(long = "error-map-signed", requires = "error_map")]
+    pub error_map_signed: bool,
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
@@ -88,6 +92,10 @@ pub fn run(args: &EvalArgs) -> Result<()> {
             &result,
             &Scene::new(&device, &result, BuildMode::Static)?,
             &Scene::new(&device, &reference, BuildMode::Static)?,
+            match args.error_map_signed {
+                true => ErrorScale::Signed(&reference),
+                false => ErrorScale::Distance,
+            },
             max_mm,
         )?;
         outln!("error map        {}", path.display());
@@ -101,6 +109,11 @@ pub fn table(r: &EvalReport, seed: u64) -> String {
     s += &format!(
         "accuracy         {:.6} mm  (mean distance result → reference)\n",
         r.accuracy_mm
+    );
+    s += &format!(
+        "signed accuracy  {:+.6} mm  (> 0: the result lies outside the reference; {:.1} % of its area does)\n",
+        r.signed_accuracy_mm,
+        100.0 * r.outside_share
     );
     s += &format!(
         "completeness     {:.6} mm  (mean distance reference → result)\n",

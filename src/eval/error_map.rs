@@ -1,7 +1,8 @@
 //! The error map: a PNG of the result mesh seen from six sides (orthographic: four around the
 //! turntable's +y axis, then from above and below), every visible point coloured by its distance
-//! to the reference surface (mm; blue 0 → green → yellow → red at `max_mm` and beyond) and shaded
-//! by how squarely it faces the viewer; a colour bar below.
+//! to the reference surface (mm; blue 0 → green → yellow → red at `max_mm` and beyond) or, signed,
+//! by which side of it the point lies (blue inside at −`max_mm` → grey on it → red outside at
+//! +`max_mm`), and shaded by how squarely it faces the viewer; a colour bar below.
 
 use std::path::Path;
 
@@ -10,6 +11,7 @@ use nalgebra::{Point3, Vector3};
 use opencv::core::{Mat, MatTrait, Point, Rect, Scalar, Vec3b, CV_8UC3};
 use opencv::imgproc::{rectangle, LINE_8};
 
+use super::signed_distance;
 use crate::mesh::TriMesh;
 use crate::trace::{Ray, Scene};
 use crate::util::image::{label, write_png};
@@ -47,13 +49,64 @@ fn colour(s: f64) -> [f64; 3] {
     std::array::from_fn(|c| STOPS[i][c] * (1.0 - f) + STOPS[i + 1][c] * f)
 }
 
+/// Blue (−1, inside) → grey (0) → red (+1, outside) for `s` in [−1, 1] (BGR).
+fn signed_colour(s: f64) -> [f64; 3] {
+    const INSIDE: [f64; 3] = [220.0, 70.0, 20.0];
+    const ON: [f64; 3] = [225.0, 225.0, 225.0];
+    const OUTSIDE: [f64; 3] = [20.0, 20.0, 220.0];
+    let s = s.clamp(-1.0, 1.0);
+    let (end, f) = if s < 0.0 { (INSIDE, -s) } else { (OUTSIDE, s) };
+    std::array::from_fn(|c| ON[c] * (1.0 - f) + end[c] * f)
+}
+
+/// What an error map shows: the distance to the reference, or the signed distance to the
+/// reference mesh (negative inside it).
+#[derive(Clone, Copy)]
+pub enum ErrorScale<'a> {
+    Distance,
+    Signed(&'a TriMesh),
+}
+
+impl ErrorScale<'_> {
+    /// The colour of `d` (mm; signed for [`ErrorScale::Signed`]) with `max_mm` at the scale's end.
+    fn colour(&self, d: f64, max_mm: f64) -> [f64; 3] {
+        match self {
+            ErrorScale::Distance => colour(d / max_mm),
+            ErrorScale::Signed(_) => signed_colour(d / max_mm),
+        }
+    }
+
+    /// The colour bar's title and its labels at its left end, middle and right end.
+    fn legend(&self, max_mm: f64) -> (&'static str, [String; 3]) {
+        match self {
+            ErrorScale::Distance => (
+                "distance to the reference",
+                [
+                    "0 mm".into(),
+                    format!("{:.3} mm", 0.5 * max_mm),
+                    format!(">= {max_mm:.3} mm"),
+                ],
+            ),
+            ErrorScale::Signed(_) => (
+                "signed distance to the reference (< 0: inside it)",
+                [
+                    format!("<= -{max_mm:.3} mm"),
+                    "0 mm".into(),
+                    format!(">= +{max_mm:.3} mm"),
+                ],
+            ),
+        }
+    }
+}
+
 /// Renders `result` coloured by the distance of each visible point to the surface in `reference`
-/// and writes the PNG to `path` (atomically). `max_mm`: the distance shown red.
+/// (as `scale` says) and writes the PNG to `path` (atomically). `max_mm`: the distance shown red.
 pub fn write_error_map(
     path: &Path,
     result: &TriMesh,
     result_scene: &Scene,
     reference: &Scene,
+    scale: ErrorScale,
     max_mm: f64,
 ) -> Result<()> {
     let Some((lo, hi)) = result.bbox() else {
@@ -61,7 +114,7 @@ pub fn write_error_map(
     };
     let centre = nalgebra::center(&lo, &hi);
     let radius = 0.5 * (hi - lo).norm();
-    let scale = 2.0 * radius * 1.05 / PANEL as f64; // mm per pixel
+    let mm_per_px = 2.0 * radius * 1.05 / PANEL as f64;
     let (cols, rows) = (3, 2);
     let mut img = Mat::new_rows_cols_with_default(
         rows * PANEL + BAR,
@@ -74,8 +127,8 @@ pub fn write_error_map(
         let rays: Vec<Ray> = (0..PANEL * PANEL)
             .map(|p| {
                 let (px, py) = ((p % PANEL) as f64 + 0.5, (p / PANEL) as f64 + 0.5);
-                let offset = right * ((px - 0.5 * PANEL as f64) * scale)
-                    - up * ((py - 0.5 * PANEL as f64) * scale);
+                let offset = right * ((px - 0.5 * PANEL as f64) * mm_per_px)
+                    - up * ((py - 0.5 * PANEL as f64) * mm_per_px);
                 Ray::new(centre + offset - dir * (2.0 * radius), dir)
             })
             .collect();
@@ -89,12 +142,15 @@ pub fn write_error_map(
         let points: Vec<Point3<f64>> = seen.iter().map(|s| s.2).collect();
         let dist = reference.closest_points(&points)?;
         let (x0, y0) = ((k as i32 % cols) * PANEL, (k as i32 / cols) * PANEL);
-        for (&(p, prim, _), d) in seen.iter().zip(&dist) {
-            let d = d.dist;
+        for (&(p, prim, q), c) in seen.iter().zip(&dist) {
+            let d = match scale {
+                ErrorScale::Distance => c.dist,
+                ErrorScale::Signed(mesh) => signed_distance(&q, c, mesh),
+            };
             let n = result.face_cross(prim as usize);
             let facing = n.dot(&dir).abs() / n.norm().max(f64::MIN_POSITIVE);
             let shade = 0.35 + 0.65 * facing;
-            let c = colour(d / max_mm).map(|v| (v * shade) as u8);
+            let c = scale.colour(d, max_mm).map(|v| (v * shade) as u8);
             *img.at_2d_mut::<Vec3b>(y0 + p as i32 / PANEL, x0 + p as i32 % PANEL)? = Vec3b::from(c);
         }
         label(
@@ -107,8 +163,13 @@ pub fn write_error_map(
     }
     // Colour bar.
     let (bx, by, bw, bh) = (60, rows * PANEL + 12, cols * PANEL - 120, 20);
+    let (title, labels) = scale.legend(max_mm);
     for i in 0..bw {
-        let c = colour(i as f64 / (bw - 1) as f64);
+        let f = i as f64 / (bw - 1) as f64;
+        let c = match scale {
+            ErrorScale::Distance => colour(f),
+            ErrorScale::Signed(_) => signed_colour(2.0 * f - 1.0),
+        };
         rectangle(
             &mut img,
             Rect::new(bx + i, by, 1, bh),
@@ -118,11 +179,7 @@ pub fn write_error_map(
             0,
         )?;
     }
-    for (f, text) in [
-        (0.0, "0 mm".to_string()),
-        (0.5, format!("{:.3} mm", 0.5 * max_mm)),
-        (1.0, format!(">= {max_mm:.3} mm")),
-    ] {
+    for (f, text) in [0.0, 0.5, 1.0].into_iter().zip(labels) {
         let x = bx + (f * bw as f64) as i32 - 20;
         label(
             &mut img,
@@ -134,7 +191,7 @@ pub fn write_error_map(
     }
     label(
         &mut img,
-        "distance to the reference",
+        title,
         Point::new(bx, by - 2),
         0.45,
         Scalar::all(0.0),
@@ -144,7 +201,7 @@ pub fn write_error_map(
 
 #[cfg(test)]
 mod tests {
-    use super::colour;
+    use super::{colour, signed_colour};
 
     #[test]
     fn the_colour_scale_runs_blue_to_red_and_clamps() {
@@ -154,5 +211,19 @@ mod tests {
         assert_eq!(colour(-1.0), colour(0.0));
         let mid = colour(0.5);
         assert!(mid[1] > mid[0] && mid[1] > mid[2], "{mid:?}");
+    }
+
+    #[test]
+    fn the_signed_scale_runs_blue_inside_to_red_outside_and_clamps() {
+        let (inside, outside) = (signed_colour(-1.0), signed_colour(1.0));
+        assert!(inside[0] > 200.0 && inside[2] < 50.0, "{inside:?}");
+        assert!(outside[2] > 200.0 && outside[0] < 50.0, "{outside:?}");
+        let on = signed_colour(0.0);
+        assert!(
+            on.iter().all(|&v| v == on[0]),
+            "grey on the surface: {on:?}"
+        );
+        assert_eq!(signed_colour(-5.0), inside);
+        assert_eq!(signed_colour(5.0), outside);
     }
 }

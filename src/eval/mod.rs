@@ -3,6 +3,10 @@
 //! Both meshes are sampled uniformly by area (seeded); each sample's exact distance to the other
 //! surface (closest point on its triangles, f64, pruned by Embree's BVH) gives
 //! - accuracy: mean distance result → reference (mm),
+//! - the signed accuracy: the same with the distance counted negative where the result lies
+//!   inside the reference (the side of the closest triangle's plane), and the share of the
+//!   result's area outside — whether a result is too large (a hull not carved away, a refractive
+//!   index set too low) or too small,
 //! - completeness: mean distance reference → result (mm),
 //! - F-score at threshold τ: harmonic mean of precision (share of result samples within τ of the
 //!   reference) and recall (share of reference samples within τ of the result),
@@ -19,7 +23,7 @@ use serde::Serialize;
 
 use crate::mesh::sample::sample_surface;
 use crate::mesh::TriMesh;
-use crate::trace::{BuildMode, Device, Scene, TraceError};
+use crate::trace::{BuildMode, ClosestPoint, Device, Scene, TraceError};
 
 /// What [`evaluate`] samples and reports.
 #[derive(Clone, Debug)]
@@ -55,6 +59,10 @@ pub struct FScore {
 #[derive(Clone, Debug, PartialEq)]
 pub struct EvalReport {
     pub accuracy_mm: f64,
+    /// Mean signed distance result → reference (mm, > 0 outside the reference).
+    pub signed_accuracy_mm: f64,
+    /// Share of the result's samples outside the reference.
+    pub outside_share: f64,
     pub completeness_mm: f64,
     pub fscores: Vec<FScore>,
     pub drt_mean_mm: f64,
@@ -65,8 +73,8 @@ pub struct EvalReport {
 
 impl EvalReport {
     /// The JSON form `glasscan eval --json` writes: exactly the keys `accuracy_mm`,
-    /// `completeness_mm`, `fscore` (threshold in mm as a decimal string → F-score),
-    /// `drt_mean_mm`, `hausdorff_mm`.
+    /// `signed_accuracy_mm`, `outside_share`, `completeness_mm`, `fscore` (threshold in mm as a
+    /// decimal string → F-score), `drt_mean_mm`, `hausdorff_mm`.
     pub fn to_json(&self) -> serde_json::Value {
         let fscore: BTreeMap<String, f64> = self
             .fscores
@@ -75,6 +83,8 @@ impl EvalReport {
             .collect();
         serde_json::json!({
             "accuracy_mm": self.accuracy_mm,
+            "signed_accuracy_mm": self.signed_accuracy_mm,
+            "outside_share": self.outside_share,
             "completeness_mm": self.completeness_mm,
             "fscore": fscore,
             "drt_mean_mm": self.drt_mean_mm,
@@ -111,7 +121,9 @@ pub fn evaluate(
 
     // Different seeds on the two sides, so that evaluating a mesh against itself does not sample
     // the very same points twice.
-    let d_res = sampled_distances(result, &ref_scene, options.samples, options.seed)?;
+    let d_res_signed =
+        signed_distances(result, reference, &ref_scene, options.samples, options.seed)?;
+    let d_res: Vec<f64> = d_res_signed.iter().map(|d| d.abs()).collect();
     let d_ref = sampled_distances(
         reference,
         &res_scene,
@@ -157,6 +169,9 @@ pub fn evaluate(
         .fold(0.0, f64::max);
     Ok(EvalReport {
         accuracy_mm: mean(&d_res),
+        signed_accuracy_mm: mean(&d_res_signed),
+        outside_share: d_res_signed.iter().filter(|&&d| d > 0.0).count() as f64
+            / d_res_signed.len().max(1) as f64,
         completeness_mm: mean(&d_ref),
         fscores,
         drt_mean_mm: mean(&d_vert),
@@ -194,6 +209,22 @@ fn used_vertices(mesh: &TriMesh) -> Vec<Point3<f64>> {
         .collect()
 }
 
+/// `samples` points drawn uniformly by area on `from` (seeded) and their closest points on the
+/// surface in `to`.
+fn sampled_closest(
+    from: &TriMesh,
+    to: &Scene,
+    samples: usize,
+    seed: u64,
+) -> Result<(Vec<Point3<f64>>, Vec<ClosestPoint>), TraceError> {
+    let pts: Vec<Point3<f64>> = sample_surface(from, samples, seed)
+        .into_iter()
+        .map(|(p, _)| p)
+        .collect();
+    let closest = to.closest_points(&pts)?;
+    Ok((pts, closest))
+}
+
 /// Distances (mm) from `samples` points drawn uniformly by area on `from` (seeded) to the surface
 /// in `to`.
 pub fn sampled_distances(
@@ -202,13 +233,37 @@ pub fn sampled_distances(
     samples: usize,
     seed: u64,
 ) -> Result<Vec<f64>, TraceError> {
-    let pts: Vec<Point3<f64>> = sample_surface(from, samples, seed)
-        .into_iter()
-        .map(|(p, _)| p)
-        .collect();
-    Ok(to
-        .closest_points(&pts)?
-        .into_iter()
-        .map(|c| c.dist)
+    let (_, closest) = sampled_closest(from, to, samples, seed)?;
+    Ok(closest.into_iter().map(|c| c.dist).collect())
+}
+
+/// The distance (mm) of `p` to its closest point `c` on the closed, outward-oriented `mesh`,
+/// negative where `p` lies inside: behind the plane of the closest triangle. (Where the closest
+/// point is an edge or a vertex, `p` lies on the same side of each triangle there, but for a
+/// sliver of space at an edge whose faces nearly fold back.)
+pub fn signed_distance(p: &Point3<f64>, c: &ClosestPoint, mesh: &TriMesh) -> f64 {
+    let inside = (c.prim as usize) < mesh.faces.len()
+        && (p - c.point).dot(&mesh.face_cross(c.prim as usize)) < 0.0;
+    if inside {
+        -c.dist
+    } else {
+        c.dist
+    }
+}
+
+/// As [`sampled_distances`] to the closed, outward-oriented mesh `to_mesh` (held by `to`), each
+/// distance negative where the sample lies inside it ([`signed_distance`]).
+fn signed_distances(
+    from: &TriMesh,
+    to_mesh: &TriMesh,
+    to: &Scene,
+    samples: usize,
+    seed: u64,
+) -> Result<Vec<f64>, TraceError> {
+    let (pts, closest) = sampled_closest(from, to, samples, seed)?;
+    Ok(pts
+        .iter()
+        .zip(&closest)
+        .map(|(p, c)| signed_distance(p, c, to_mesh))
         .collect())
 }

@@ -135,7 +135,9 @@ fn eval_prints_a_table_and_writes_exactly_the_documented_json_keys() {
             "completeness_mm",
             "drt_mean_mm",
             "fscore",
-            "hausdorff_mm"
+            "hausdorff_mm",
+            "outside_share",
+            "signed_accuracy_mm"
         ]
     );
     let mut f: Vec<&str> = v["fscore"]
@@ -199,6 +201,43 @@ fn eval_error_map_colours_the_distance_to_the_reference() {
     let o = run("0");
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert!(stderr(&o).contains("--error-max-mm"), "{}", stderr(&o));
+    // Signed: the larger sphere is red (outside the reference), the smaller one against the
+    // larger blue (inside), half-way to the scale's end at 0.6 mm.
+    for (result, reference, outside) in [(&a, &b, true), (&b, &a, false)] {
+        let o = glasscan(&[
+            "eval",
+            result.to_str().unwrap(),
+            "--reference",
+            reference.to_str().unwrap(),
+            "--samples",
+            "20000",
+            "--error-map",
+            map.to_str().unwrap(),
+            "--error-max-mm",
+            "0.6",
+            "--error-map-signed",
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let sign = if outside { "+0.29" } else { "-0.29" };
+        assert!(
+            stdout(&o).contains(&format!("signed accuracy  {sign}")),
+            "{}",
+            stdout(&o)
+        );
+        let img = imread(map.to_str().unwrap(), IMREAD_COLOR).unwrap();
+        for k in 0..6 {
+            let c = *img
+                .at_2d::<Vec3b>((k / 3) * 420 + 210, (k % 3) * 420 + 210)
+                .unwrap();
+            let (red, blue) = (c[2] as i32, c[0] as i32);
+            let ok = if outside {
+                red > blue + 60
+            } else {
+                blue > red + 60
+            };
+            assert!(ok, "panel {k} centre {c:?}, outside: {outside}");
+        }
+    }
 }
 
 #[test]

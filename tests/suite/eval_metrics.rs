@@ -13,6 +13,7 @@ fn a_mesh_against_itself_scores_zero() {
         let r = evaluate(&mesh, &mesh, &opts).unwrap();
         let tol = 1e-6 * mesh.bbox_diagonal();
         assert!(r.accuracy_mm < tol && r.completeness_mm < tol, "{r:?}");
+        assert!(r.signed_accuracy_mm.abs() < tol, "{r:?}");
         assert!(r.drt_mean_mm < tol && r.hausdorff_mm < tol, "{r:?}");
         assert!(r.fscores.iter().all(|f| f.fscore == 1.0), "{r:?}");
     }
@@ -29,6 +30,12 @@ fn concentric_spheres_half_a_millimetre_apart() {
         seed: 4,
     };
     let r = evaluate(&outer, &inner, &opts).unwrap();
+    // The larger sphere lies wholly outside the smaller one, and the smaller inside the larger.
+    assert!((r.signed_accuracy_mm - 0.5).abs() <= 0.005, "{r:?}");
+    assert_eq!(r.outside_share, 1.0);
+    let back = evaluate(&inner, &outer, &opts).unwrap();
+    assert!((back.signed_accuracy_mm + 0.5).abs() <= 0.005, "{back:?}");
+    assert_eq!(back.outside_share, 0.0);
     for (name, v) in [
         ("accuracy", r.accuracy_mm),
         ("completeness", r.completeness_mm),
