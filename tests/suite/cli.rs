@@ -167,20 +167,25 @@ fn eval_error_map_colours_the_distance_to_the_reference() {
     // point is mid-scale (green), darkened only by the shading.
     write_mesh(&a, &icosphere(20.3, 5)).unwrap();
     write_mesh(&b, &icosphere(20.0, 5)).unwrap();
-    let run = |max: &str| {
-        glasscan(&[
+    let eval_map = |result: &std::path::Path, reference: &std::path::Path, max: &str, signed| {
+        let mut args = vec![
             "eval",
-            a.to_str().unwrap(),
+            result.to_str().unwrap(),
             "--reference",
-            b.to_str().unwrap(),
+            reference.to_str().unwrap(),
             "--samples",
             "20000",
             "--error-map",
             map.to_str().unwrap(),
             "--error-max-mm",
             max,
-        ])
+        ];
+        if signed {
+            args.push("--error-map-signed");
+        }
+        glasscan(&args)
     };
+    let run = |max: &str| eval_map(&a, &b, max, false);
     let o = run("0.6");
     assert!(o.status.success(), "{}", stderr(&o));
     let img = imread(map.to_str().unwrap(), IMREAD_COLOR).unwrap();
@@ -204,19 +209,7 @@ fn eval_error_map_colours_the_distance_to_the_reference() {
     // Signed: the larger sphere is red (outside the reference), the smaller one against the
     // larger blue (inside), half-way to the scale's end at 0.6 mm.
     for (result, reference, outside) in [(&a, &b, true), (&b, &a, false)] {
-        let o = glasscan(&[
-            "eval",
-            result.to_str().unwrap(),
-            "--reference",
-            reference.to_str().unwrap(),
-            "--samples",
-            "20000",
-            "--error-map",
-            map.to_str().unwrap(),
-            "--error-max-mm",
-            "0.6",
-            "--error-map-signed",
-        ]);
+        let o = eval_map(result, reference, "0.6", true);
         assert!(o.status.success(), "{}", stderr(&o));
         let sign = if outside { "+0.29" } else { "-0.29" };
         assert!(
