@@ -92,9 +92,10 @@ pub fn run(args: &EvalArgs) -> Result<()> {
             &result,
             &Scene::new(&device, &result, BuildMode::Static)?,
             &Scene::new(&device, &reference, BuildMode::Static)?,
-            match args.error_map_signed {
-                true => ErrorScale::Signed(&reference),
-                false => ErrorScale::Distance,
+            if args.error_map_signed {
+                ErrorScale::Signed(&reference)
+            } else {
+                ErrorScale::Distance
             },
             max_mm,
         )?;

@@ -13,7 +13,7 @@ use opencv::imgproc::{rectangle, LINE_8};
 
 use super::signed_distance;
 use crate::mesh::TriMesh;
-use crate::trace::{Ray, Scene};
+use crate::trace::{ClosestPoint, Ray, Scene};
 use crate::util::image::{label, write_png};
 
 /// Side of one panel, pixels.
@@ -68,11 +68,28 @@ pub enum ErrorScale<'a> {
 }
 
 impl ErrorScale<'_> {
-    /// The colour of `d` (mm; signed for [`ErrorScale::Signed`]) with `max_mm` at the scale's end.
-    fn colour(&self, d: f64, max_mm: f64) -> [f64; 3] {
+    /// The distance (mm) this scale shows for point `q` with its closest reference point `c`.
+    fn distance(&self, q: &Point3<f64>, c: &ClosestPoint) -> f64 {
         match self {
-            ErrorScale::Distance => colour(d / max_mm),
-            ErrorScale::Signed(_) => signed_colour(d / max_mm),
+            ErrorScale::Distance => c.dist,
+            ErrorScale::Signed(mesh) => signed_distance(q, c, mesh),
+        }
+    }
+
+    /// Where distance `d` (mm) lies along the colour bar, 0 at its left end and 1 at its right
+    /// (`max_mm` at the right end; for the signed scale −`max_mm` at the left).
+    fn position(&self, d: f64, max_mm: f64) -> f64 {
+        match self {
+            ErrorScale::Distance => d / max_mm,
+            ErrorScale::Signed(_) => 0.5 + 0.5 * d / max_mm,
+        }
+    }
+
+    /// The colour at `f` along the bar (clamped to its ends).
+    fn bar_colour(&self, f: f64) -> [f64; 3] {
+        match self {
+            ErrorScale::Distance => colour(f),
+            ErrorScale::Signed(_) => signed_colour(2.0 * f - 1.0),
         }
     }
 
@@ -143,14 +160,13 @@ pub fn write_error_map(
         let dist = reference.closest_points(&points)?;
         let (x0, y0) = ((k as i32 % cols) * PANEL, (k as i32 / cols) * PANEL);
         for (&(p, prim, q), c) in seen.iter().zip(&dist) {
-            let d = match scale {
-                ErrorScale::Distance => c.dist,
-                ErrorScale::Signed(mesh) => signed_distance(&q, c, mesh),
-            };
+            let d = scale.distance(&q, c);
             let n = result.face_cross(prim as usize);
             let facing = n.dot(&dir).abs() / n.norm().max(f64::MIN_POSITIVE);
             let shade = 0.35 + 0.65 * facing;
-            let c = scale.colour(d, max_mm).map(|v| (v * shade) as u8);
+            let c = scale
+                .bar_colour(scale.position(d, max_mm))
+                .map(|v| (v * shade) as u8);
             *img.at_2d_mut::<Vec3b>(y0 + p as i32 / PANEL, x0 + p as i32 % PANEL)? = Vec3b::from(c);
         }
         label(
@@ -165,11 +181,7 @@ pub fn write_error_map(
     let (bx, by, bw, bh) = (60, rows * PANEL + 12, cols * PANEL - 120, 20);
     let (title, labels) = scale.legend(max_mm);
     for i in 0..bw {
-        let f = i as f64 / (bw - 1) as f64;
-        let c = match scale {
-            ErrorScale::Distance => colour(f),
-            ErrorScale::Signed(_) => signed_colour(2.0 * f - 1.0),
-        };
+        let c = scale.bar_colour(i as f64 / (bw - 1) as f64);
         rectangle(
             &mut img,
             Rect::new(bx + i, by, 1, bh),
