@@ -5,8 +5,8 @@
 //! - accuracy: mean distance result → reference (mm),
 //! - the signed accuracy: the same with the distance counted negative where the result lies
 //!   inside the reference (the side of the closest triangle's plane), and the share of the
-//!   result's area outside — whether a result is too large (a hull not carved away, a refractive
-//!   index set too low) or too small,
+//!   result's area outside — whether a result is too large (say, a hull not carved away) or too
+//!   small,
 //! - completeness: mean distance reference → result (mm),
 //! - F-score at threshold τ: harmonic mean of precision (share of result samples within τ of the
 //!   reference) and recall (share of reference samples within τ of the result),
