@@ -121,8 +121,12 @@ pub fn evaluate(
 
     // Different seeds on the two sides, so that evaluating a mesh against itself does not sample
     // the very same points twice.
-    let d_res_signed =
-        signed_distances(result, reference, &ref_scene, options.samples, options.seed)?;
+    let (pts, closest) = sampled_closest(result, &ref_scene, options.samples, options.seed)?;
+    let d_res_signed: Vec<f64> = pts
+        .iter()
+        .zip(&closest)
+        .map(|(p, c)| signed_distance(p, c, reference))
+        .collect();
     let d_res: Vec<f64> = d_res_signed.iter().map(|d| d.abs()).collect();
     let d_ref = sampled_distances(
         reference,
@@ -249,21 +253,4 @@ pub fn signed_distance(p: &Point3<f64>, c: &ClosestPoint, mesh: &TriMesh) -> f64
     } else {
         c.dist
     }
-}
-
-/// As [`sampled_distances`] to the closed, outward-oriented mesh `to_mesh` (held by `to`), each
-/// distance negative where the sample lies inside it ([`signed_distance`]).
-fn signed_distances(
-    from: &TriMesh,
-    to_mesh: &TriMesh,
-    to: &Scene,
-    samples: usize,
-    seed: u64,
-) -> Result<Vec<f64>, TraceError> {
-    let (pts, closest) = sampled_closest(from, to, samples, seed)?;
-    Ok(pts
-        .iter()
-        .zip(&closest)
-        .map(|(p, c)| signed_distance(p, c, to_mesh))
-        .collect())
 }
