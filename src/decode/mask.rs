@@ -18,7 +18,8 @@
 //! covered, judged from how much of the background's fine code it still shows
 //! ([`super::coherence`]), or from its white ratio where the background has no reliable fine
 //! bits there. Last, connected object regions smaller than
-//! `min_component_px` are dropped and holes smaller than `max_hole_px` filled.
+//! `min_component_px` are dropped and holes smaller than `max_hole_px` (or thin) filled with
+//! [`MASK_FILLED`], which the hull counts as object and the losses as background.
 //!
 //! Without a captured background, the background point is predicted from the calibrated screen
 //! pose (the camera ray of each pixel meets the monitor plane), and rule 3 and the edge trim are
@@ -28,6 +29,7 @@ use anyhow::Result;
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, CV_32S};
 
 use super::graycode::PixelDecode;
+use crate::scan::decoded::{MASK_FILLED, MASK_OBJECT};
 
 /// Thresholds of the silhouette rules.
 #[derive(Clone, Copy, Debug)]
@@ -275,31 +277,33 @@ pub fn pixels_at_monitor_edge(mask: &[u8], background: &[BackgroundPixel], width
         .count()
 }
 
-/// Drops small object regions and fills holes that are small or thin (at most 2 pixels wide on
-/// average, such as the line where a ray through the lens centre decodes like the background),
-/// in place; 8-connected regions; a background region touching the image border is no hole.
+/// Drops small object regions (to 0) and marks holes that are small or thin (at most 2 pixels
+/// wide on average, such as the line where a ray through the lens centre decodes like the
+/// background) as [`MASK_FILLED`], in place; 8-connected regions; a background region touching
+/// the image border is no hole.
 pub fn clean(mask: &mut [u8], width: i32, height: i32, o: &MaskOptions) -> Result<()> {
-    remove_regions(mask, width, height, 255, |area, _, _, _| {
+    let (object, background) = ((MASK_OBJECT, 0), (0, MASK_FILLED));
+    relabel_regions(mask, width, height, object, |area, _, _, _| {
         area < o.min_component_px
     })?;
-    remove_regions(mask, width, height, 0, |area, w, h, border| {
+    relabel_regions(mask, width, height, background, |area, w, h, border| {
         !border && (area < o.max_hole_px || area <= 2 * w.max(h))
     })?;
     Ok(())
 }
 
-/// Sets the regions of value `value` for which `drop(area, width, height, touches_border)`
-/// (pixels) holds to the other value.
-fn remove_regions(
+/// Sets the 8-connected regions of value `from` for which `relabel(area, width, height,
+/// touches_border)` (pixels) holds to `to`.
+fn relabel_regions(
     mask: &mut [u8],
     width: i32,
     height: i32,
-    value: u8,
-    drop: impl Fn(i32, i32, i32, bool) -> bool,
+    (from, to): (u8, u8),
+    relabel: impl Fn(i32, i32, i32, bool) -> bool,
 ) -> Result<()> {
     let sel: Vec<u8> = mask
         .iter()
-        .map(|&m| if m == value { 255 } else { 0 })
+        .map(|&m| if m == from { 255 } else { 0 })
         .collect();
     let img = Mat::new_rows_cols_with_data(height, width, &sel)?;
     let (mut labels, mut stats, mut centroids) = (Mat::default(), Mat::default(), Mat::default());
@@ -312,7 +316,7 @@ fn remove_regions(
         CV_32S,
     )?;
     use opencv::imgproc::{CC_STAT_AREA, CC_STAT_HEIGHT, CC_STAT_LEFT, CC_STAT_TOP, CC_STAT_WIDTH};
-    let small: Vec<bool> = (0..n)
+    let chosen: Vec<bool> = (0..n)
         .map(|l| -> Result<bool> {
             let st = |k| stats.at_2d::<i32>(l, k).copied();
             let (x, y, w, h) = (
@@ -322,15 +326,52 @@ fn remove_regions(
                 st(CC_STAT_HEIGHT)?,
             );
             let border = x == 0 || y == 0 || x + w == width || y + h == height;
-            Ok(l > 0 && drop(st(CC_STAT_AREA)?, w, h, border))
+            Ok(l > 0 && relabel(st(CC_STAT_AREA)?, w, h, border))
         })
         .collect::<Result<_>>()?;
     let labels = labels.data_typed::<i32>()?;
-    let other = if value == 255 { 0 } else { 255 };
     for (m, &l) in mask.iter_mut().zip(labels) {
-        if small[l as usize] {
-            *m = other;
+        if chosen[l as usize] {
+            *m = to;
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cleaning_marks_small_holes_filled_and_drops_specks() {
+        let (w, h) = (40usize, 30usize);
+        let mut mask = vec![0u8; w * h];
+        let at = |x: usize, y: usize| y * w + x;
+        for y in 5..25 {
+            for x in 5..25 {
+                mask[at(x, y)] = MASK_OBJECT;
+            }
+        }
+        // A 3×3 hole in the object and a 2-pixel speck beside it.
+        for y in 12..15 {
+            for x in 12..15 {
+                mask[at(x, y)] = 0;
+            }
+        }
+        mask[at(32, 10)] = MASK_OBJECT;
+        mask[at(33, 10)] = MASK_OBJECT;
+        let before = mask.clone();
+        clean(&mut mask, w as i32, h as i32, &MaskOptions::default()).unwrap();
+        for (i, (&b, &a)) in before.iter().zip(&mask).enumerate() {
+            let (x, y) = (i % w, i / w);
+            let expected = if (12..15).contains(&x) && (12..15).contains(&y) {
+                MASK_FILLED
+            } else if y == 10 && (32..34).contains(&x) {
+                0
+            } else {
+                b
+            };
+            assert_eq!(a, expected, "pixel ({x}, {y})");
+        }
+    }
 }

@@ -25,7 +25,7 @@ use crate::scan::silhouette::Silhouette;
 
 /// The carving field over a set of silhouettes.
 pub struct Field<'a> {
-    pub silhouettes: &'a [Silhouette],
+    pub silhouettes: &'a [&'a Silhouette],
     /// Views a point may fall outside of and still be kept (mask errors).
     pub tolerance: usize,
 }

@@ -4,6 +4,7 @@
 
 pub mod carve;
 
+use std::borrow::Cow;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -113,12 +114,18 @@ pub fn silhouettes(scan: &Scan, views: &[usize]) -> Result<(Vec<Silhouette>, Vec
     Ok((sils, warnings))
 }
 
-/// The visual hull of `sils` (all taken with the same camera), world frame, outward, watertight.
+/// The visual hull of `sils` (all taken with the same camera; the holes the decoder filled count
+/// inside), world frame, outward, watertight.
 pub fn visual_hull(
     sils: &[Silhouette],
     o: &HullOptions,
     bar: &ProgressBar,
 ) -> Result<(TriMesh, HullReport)> {
+    let filled: Vec<Cow<Silhouette>> = sils
+        .par_iter()
+        .map(Silhouette::with_holes_filled)
+        .collect::<Result<_>>()?;
+    let sils: Vec<&Silhouette> = filled.iter().map(|s| s.as_ref()).collect();
     if !(o.voxel_mm > 0.0 && o.voxel_mm.is_finite()) {
         bail!("--voxel-mm {}: it must be a positive size", o.voxel_mm);
     }
@@ -139,7 +146,7 @@ pub fn visual_hull(
     .map(|&(u, v): &(f64, f64)| ((u - cam.cx) / cam.fx).hypot((v - cam.cy) / cam.fy))
     .fold(0.0, f64::max);
     let field = Field {
-        silhouettes: sils,
+        silhouettes: &sils,
         tolerance: o.tolerance,
     };
     let t0 = Instant::now();

@@ -2,8 +2,10 @@
 //!
 //! Per view: contour edges are mesh edges whose two faces face opposite ways from the camera
 //! centre. Both endpoints are projected (with the lens model); at the projected midpoint M two
-//! probe rays are cast at ±1 px along the edge's 2D normal N = (a_y − b_y, b_x − a_x), and
-//! f = hit(+) − hit(−) keeps only true, unoccluded contour edges (f ≠ 0). The mask enters as its
+//! probe rays are cast at ±δ px along the edge's 2D normal N = (a_y − b_y, b_x − a_x), and
+//! f = hit(+) − hit(−) keeps only true, unoccluded contour edges (f ≠ 0). DRT's δ is 1 px; the
+//! presets' is 0.03 px (`silhouette_probe`), which also drops the edges a mesh's zigzag contour
+//! hides just inside its own outline: they would pull outward with nothing to balance them. The mask enters as its
 //! signed distance image sd (pixels, > 0 inside; see [`Silhouette`]).
 //!
 //! Two forms:
@@ -43,13 +45,14 @@ pub struct ContourEdge {
     pub side: f64,
 }
 
-/// Contour edges of `mesh` seen from view `sil` that the probe rays confirm (batched through
-/// `scene`, which must hold `mesh`).
+/// Contour edges of `mesh` seen from view `sil` that the probe rays, `probe_px` camera pixels to
+/// either side, confirm (batched through `scene`, which must hold `mesh`).
 pub fn contour_edges(
     mesh: &TriMesh,
     edges: &[InteriorEdge],
     sil: &Silhouette,
     scene: &Scene,
+    probe_px: f64,
 ) -> Result<Vec<ContourEdge>, TraceError> {
     let to_world = sil.pose.inverse();
     let eye = to_world * Point3::origin();
@@ -77,7 +80,7 @@ pub fn contour_edges(
                     .pixel_ray(p.x, p.y)
                     .map(|d| Ray::new(eye, to_world * d))
             };
-            Some((*e, [probe(1.0)?, probe(-1.0)?]))
+            Some((*e, [probe(probe_px)?, probe(-probe_px)?]))
         })
         .collect();
     let rays: Vec<Ray> = candidates.iter().flat_map(|(_, r)| *r).collect();
@@ -154,9 +157,10 @@ pub fn add_view(
     sil: &Silhouette,
     scene: &Scene,
     form: SilhouetteForm,
+    probe_px: f64,
     acc: &mut Accumulator,
 ) -> Result<(), TraceError> {
-    let contour = contour_edges(mesh, edges, sil, scene)?;
+    let contour = contour_edges(mesh, edges, sil, scene, probe_px)?;
     let chunks: Vec<Contributions> = contour
         .par_chunks(1024)
         .map(|chunk| {

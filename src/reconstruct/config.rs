@@ -154,6 +154,14 @@ pub struct Settings {
     /// whose dihedral angles on a given bend shrink with the edge. 0: the same in every stage.
     #[serde(default)]
     pub smoothing_edge: f64,
+    /// How far (camera pixels) beside a contour edge's projected midpoint its two probe rays
+    /// look: the edge counts only if the mesh is hit on one side and missed on the other, so
+    /// only edges within this distance of the mesh's own outline pull on the silhouettes. An
+    /// edge hidden just inside the outline (the contour of a mesh zigzags) would pull outward
+    /// with nothing to balance it (docs/decisions.md). DRT's: 1; absent from reports written
+    /// before it existed, which used 1.
+    #[serde(default = "one_f64")]
+    pub silhouette_probe: f64,
 }
 
 impl Optimizer {
@@ -271,6 +279,7 @@ impl Settings {
             average_share: 0.5,
             weight_unseen: 10.0,
             smoothing_edge: 0.0,
+            silhouette_probe: 0.03,
         };
         match preset {
             Preset::Fast => base,
@@ -324,6 +333,7 @@ impl Settings {
                 average_share: 0.0,
                 weight_bits: 0.0,
                 weight_unseen: 0.0,
+                silhouette_probe: 1.0,
                 ..base
             },
         }
@@ -432,6 +442,12 @@ impl Settings {
                 return bad("robust", "the scale δ must be a positive number");
             }
             _ => {}
+        }
+        if !(self.silhouette_probe > 0.0 && self.silhouette_probe <= 4.0) {
+            return bad(
+                "silhouette_probe",
+                "the probe distance must lie in (0, 4] camera pixels",
+            );
         }
         if let Smoothness::Tolerant { tau } = self.smoothness {
             if !(tau > 0.0 && tau.is_finite()) {

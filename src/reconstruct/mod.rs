@@ -791,6 +791,7 @@ fn silhouette_over(
             &inputs.silhouettes[v],
             surface.scene(),
             settings.silhouette,
+            settings.silhouette_probe,
             &mut acc,
         )?;
     }

@@ -1,7 +1,9 @@
 //! The decoded form of a scan on disk (`SCAN/decoded/`, documented in the README), written by
 //! `glasscan decode` and by `glasscan simulate --decoded-only`, read by `hull` and the losses.
 //!
-//! - `view_NNN_mask.png`: 8-bit, 255 for object pixels;
+//! - `view_NNN_mask.png`: 8-bit, 255 ([`MASK_OBJECT`]) for object pixels, 128 ([`MASK_FILLED`])
+//!   for the pixels of a small or thin hole the decoder filled, 0 for the background (any other
+//!   non-zero value counts as object);
 //! - `view_NNN_monitor.png`: 16-bit, 4 channels: (u + 1)·s, (v + 1)·s of the decoded monitor
 //!   point (monitor pixels) and the cell widths along u and v (monitor pixels); 65535 where
 //!   nothing decodes;
@@ -22,6 +24,21 @@ use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec4w};
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::image::write_pixels;
 use serde::{Deserialize, Serialize};
+
+/// Mask value of an object pixel.
+pub const MASK_OBJECT: u8 = 255;
+
+/// Mask value of a pixel in a hole the decoder's cleaning filled: the background decoded there,
+/// but the hole is too small or thin to trust. The visual hull counts it as object (carving it
+/// would cut glass away if the hole was a decoding gap); the silhouette term and the refraction
+/// term count it as background, since a hole inside the object has no contour edge near it and
+/// a gap between two parts of the object is what it shows.
+pub const MASK_FILLED: u8 = 128;
+
+/// Whether mask value `m` marks an object pixel (not a filled hole, not the background).
+pub fn is_object(m: u8) -> bool {
+    m != 0 && m != MASK_FILLED
+}
 
 /// Per-view figures of a decode.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -57,7 +74,7 @@ pub struct DecodedView {
     pub view: usize,
     pub width: u32,
     pub height: u32,
-    /// Object pixels (the silhouette).
+    /// Object pixels (the silhouette without the holes the decoder filled).
     pub mask: Vec<bool>,
     /// The decoded monitor point, where one decoded.
     pub targets: Vec<Option<MonitorTarget>>,
@@ -169,7 +186,7 @@ pub fn contrasts_path(dir: &Path, k: usize) -> PathBuf {
     dir.join(format!("view_{k:03}_bits.png"))
 }
 
-/// Writes view `k`'s mask (0/255), monitor points and bit contrasts, if any (encoded as above),
+/// Writes view `k`'s mask (0, [`MASK_FILLED`], [`MASK_OBJECT`]), monitor points and bit contrasts, if any (encoded as above),
 /// into `dir`.
 pub fn write_view(
     dir: &Path,
@@ -251,7 +268,7 @@ impl DecodedScan {
             .and_then(|s| s.warning.as_deref())
     }
 
-    /// View `k`'s mask as 0/255 bytes; `Ok(None)` for a view decode skipped with a warning.
+    /// View `k`'s mask as stored (see [`MASK_OBJECT`], [`MASK_FILLED`]); `Ok(None)` for a view decode skipped with a warning.
     pub fn mask(&self, k: usize) -> Result<Option<Vec<u8>>> {
         let path = mask_path(&self.dir, k);
         if !path.is_file() {
@@ -279,7 +296,7 @@ impl DecodedScan {
                 view: k,
                 width: self.size.0,
                 height: self.size.1,
-                mask: mask.iter().map(|&b| b != 0).collect(),
+                mask: mask.iter().map(|&b| is_object(b)).collect(),
                 targets: vec![None; n],
                 rays: Some(read_rays(&rays, n)?),
                 contrasts: None,
@@ -303,7 +320,7 @@ impl DecodedScan {
             view: k,
             width: self.size.0,
             height: self.size.1,
-            mask: mask.iter().map(|&b| b != 0).collect(),
+            mask: mask.iter().map(|&b| is_object(b)).collect(),
             targets,
             rays: None,
             contrasts: self.contrasts(k)?,

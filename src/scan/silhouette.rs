@@ -1,11 +1,18 @@
 //! One view's silhouette as a signed distance: how far inside (> 0) or outside (< 0) the mask a
 //! world point projects, in pixels and converted to mm at the point's depth.
+//!
+//! Holes the decoder filled ([`MASK_FILLED`]) are outside the silhouette (the losses' view: a
+//! gap between two parts of the object shows there) and kept apart, so that the visual hull can
+//! count them inside ([`Silhouette::with_holes_filled`]).
+
+use std::borrow::Cow;
 
 use anyhow::{bail, Result};
 use nalgebra::{Isometry3, Point3};
 use opencv::core::{Mat, MatTraitConstManual, CV_32F};
 use opencv::imgproc::{distance_transform, DIST_L2, DIST_MASK_PRECISE};
 
+use super::decoded::{is_object, MASK_FILLED};
 use crate::rig::Camera;
 
 /// A view's mask as a signed distance image with the view's camera and pose.
@@ -20,12 +27,15 @@ pub struct Silhouette {
     sd: Vec<f32>,
     /// Object pixels.
     pub area_px: usize,
+    /// Pixels (row-major indices) of the holes the decoder filled, outside in `sd`.
+    filled: Vec<u32>,
     /// The mask reaches the image border (the object may be cut off).
     pub touches_border: bool,
 }
 
 impl Silhouette {
-    /// From a mask (non-zero = object) of the camera's size.
+    /// From a mask of the camera's size (`scan::decoded`'s values: [`MASK_FILLED`] a filled hole,
+    /// any other non-zero value object).
     pub fn from_mask(
         view: usize,
         mask: &[u8],
@@ -39,7 +49,13 @@ impl Silhouette {
                 mask.len()
             );
         }
-        let inside: Vec<u8> = mask.iter().map(|&m| if m != 0 { 255 } else { 0 }).collect();
+        let inside: Vec<u8> = mask
+            .iter()
+            .map(|&m| if is_object(m) { 255 } else { 0 })
+            .collect();
+        let filled = (0..mask.len() as u32)
+            .filter(|&i| mask[i as usize] == MASK_FILLED)
+            .collect();
         let outside: Vec<u8> = inside.iter().map(|&m| 255 - m).collect();
         let dist = |src: &[u8]| -> Result<Vec<f32>> {
             let m = Mat::new_rows_cols_with_data(h as i32, w as i32, src)?;
@@ -64,8 +80,22 @@ impl Silhouette {
             pose,
             sd,
             area_px,
+            filled,
             touches_border,
         })
+    }
+
+    /// This silhouette with the holes the decoder filled counted inside (the visual hull's
+    /// view: carving a hole that was a decoding gap would cut glass away); itself if it has none.
+    pub fn with_holes_filled(&self) -> Result<Cow<'_, Self>> {
+        if self.filled.is_empty() {
+            return Ok(Cow::Borrowed(self));
+        }
+        let mut mask: Vec<u8> = self.sd.iter().map(|&d| u8::from(d > 0.0) * 255).collect();
+        for &i in &self.filled {
+            mask[i as usize] = 255;
+        }
+        Self::from_mask(self.view, &mask, &self.camera, self.pose).map(Cow::Owned)
     }
 
     /// The four pixels around (x, y) (clamped to the image) and the position between them.

@@ -10,6 +10,7 @@ use glasscan::mesh::shapes::{ellipsoid, figurine, torus};
 use glasscan::mesh::validate::{ensure_valid, validate, Defect};
 use glasscan::mesh::TriMesh;
 use glasscan::rig::{Camera, Turntable};
+use glasscan::scan::decoded::MASK_FILLED;
 use glasscan::scan::silhouette::Silhouette;
 use glasscan::scan::Scan;
 use glasscan::simulate::{simulate, SimulateOptions};
@@ -223,6 +224,48 @@ fn tolerance_keeps_what_one_bad_mask_cuts_away() {
         tolerant > ball && tolerant < 1.15 * ball,
         "tolerant {tolerant} vs ball {ball}"
     );
+}
+
+#[test]
+fn a_hole_the_decoder_filled_is_inside_for_the_hull_and_outside_for_the_silhouette_term() {
+    let r = 30.0;
+    let (camera, poses) = ring(24, 240, 180, r);
+    let w = camera.width as usize;
+    let centre = (w / 2 + w * camera.height as usize / 2) as i64;
+    // An 11×11 patch in the middle of view 3's silhouette: marked filled, or truly background.
+    let with_patch = |value: u8| {
+        let mut mask = sphere_mask(&camera, &poses[3], r);
+        for dy in -5..=5i64 {
+            for dx in -5..=5i64 {
+                mask[(centre + dy * w as i64 + dx) as usize] = value;
+            }
+        }
+        Silhouette::from_mask(3, &mask, &camera, poses[3]).unwrap()
+    };
+    let (filled, open) = (with_patch(MASK_FILLED), with_patch(0));
+    let (cx, cy) = ((w / 2) as f64, (camera.height / 2) as f64);
+    assert!(filled.sd_px(cx, cy) < -2.0, "{}", filled.sd_px(cx, cy));
+    assert_eq!(filled.sd_px(cx, cy), open.sd_px(cx, cy));
+    let as_hull_sees_it = filled.with_holes_filled().unwrap();
+    assert!(as_hull_sees_it.sd_px(cx, cy) > 10.0);
+    let volume = |sil: Silhouette| {
+        let mut sils = sphere_silhouettes(24, 240, 180, r);
+        sils[3] = sil;
+        let o = HullOptions {
+            voxel_mm: 1.5,
+            edge_mm: None,
+            ..HullOptions::default()
+        };
+        visual_hull(&sils, &o, &ProgressBar::hidden())
+            .unwrap()
+            .1
+            .volume_mm3
+    };
+    let whole = volume(sphere_silhouettes(24, 240, 180, r).swap_remove(3));
+    assert_eq!(volume(filled), whole);
+    // A hole that is truly background carves a tunnel through the hull.
+    let tunnelled = volume(open);
+    assert!(tunnelled < 0.995 * whole, "{tunnelled} vs {whole}");
 }
 
 #[test]

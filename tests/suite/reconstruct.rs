@@ -398,8 +398,8 @@ fn refraction_carries_the_shape_beyond_the_hull() {
 }
 
 /// The pebble's short schedule at edges fine enough for the prism's 6 mm chamfers, with its
-/// flat facets.
-const PRISM_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.03\nfinal_edge = 0.02\niterations = 100\nrefraction_views = 4\naverage_share = 0.0\nnormals = \"face\"\n";
+/// flat facets (and DRT's 1 px silhouette probes, as the pebble's).
+const PRISM_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.03\nfinal_edge = 0.02\niterations = 100\nrefraction_views = 4\naverage_share = 0.0\nnormals = \"face\"\nsilhouette_probe = 1.0\n";
 
 /// A face seen only edge-on — the top and bottom of a prism on a level rig: every ray through
 /// them grazes or is totally reflected, and the visual hull bulges them — is left by the data
@@ -464,5 +464,8 @@ fn assert_held_out_fit_per_view(report: &serde_json::Value) {
 /// refraction weight under test; no averaging of the iterates: 60 iterations from the hull end
 /// ahead of their mean, 0.169 mm against 0.195 with face normals). 100 iterations a stage: with
 /// the presets' smooth normals 60 reach 0.191 mm from the 0.266 hull, 100 reach 0.136 (face
-/// normals: 0.169 in 60).
-const PEBBLE_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.06\nfinal_edge = 0.04\niterations = 100\nrefraction_views = 4\naverage_share = 0.0\n";
+/// normals: 0.169 in 60). DRT's 1 px silhouette probes: at these coarse edges (many pixels
+/// long) the presets' 0.03 px probes did worse, 0.213 mm (0.1 px: 0.210, 0.3 px: 0.135), and
+/// the prism test's membrane runs 0.186 / 0.251 mm with and without it (1 px: 0.266 / 0.443);
+/// docs/decisions.md, "The silhouette's probes".
+const PEBBLE_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.06\nfinal_edge = 0.04\niterations = 100\nrefraction_views = 4\naverage_share = 0.0\nsilhouette_probe = 1.0\n";
