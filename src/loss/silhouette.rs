@@ -98,6 +98,59 @@ pub fn contour_edges(
         .collect())
 }
 
+/// How many pixels of view `sil` the mesh in `scene` (which must hold `mesh`) and the mask
+/// disagree on: covered by the mesh (the pixel-centre ray hits it) and outside the mask, or the
+/// other way round. Unlike the contour-edge loss, whose mean over edges changes with the
+/// number and the zigzag of the mesh's contour edges, it measures the outline alike at every
+/// edge length (the held-out views' test of whether a finer stage fits better).
+/// Rays are traced only within the mesh's projected bounding box; the mask's object pixels
+/// outside it are counted as they are.
+pub fn outline_disagreement(
+    mesh: &TriMesh,
+    sil: &Silhouette,
+    scene: &Scene,
+) -> Result<usize, TraceError> {
+    let (w, h) = (sil.camera.width as usize, sil.camera.height as usize);
+    let projected = mesh
+        .positions
+        .iter()
+        .filter_map(|p| sil.camera.project(&(sil.pose * p)));
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for q in projected {
+        (lo, hi) = (
+            [lo[0].min(q.x), lo[1].min(q.y)],
+            [hi[0].max(q.x), hi[1].max(q.y)],
+        );
+    }
+    if !(lo[0] <= hi[0] && lo[1] <= hi[1]) {
+        return Ok(sil.area_px);
+    }
+    let clip = |v: f64, n: usize| (v.max(0.0) as usize).min(n);
+    let (x0, x1) = (clip(lo[0].floor() - 1.0, w), clip(hi[0].ceil() + 2.0, w));
+    let (y0, y1) = (clip(lo[1].floor() - 1.0, h), clip(hi[1].ceil() + 2.0, h));
+    let to_world = sil.pose.inverse();
+    let eye = to_world * Point3::origin();
+    let pixels: Vec<(usize, usize)> = (y0..y1)
+        .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+        .collect();
+    let rays: Vec<Ray> = pixels
+        .iter()
+        .map(|&(x, y)| {
+            let d = sil.camera.pixel_ray(x as f64, y as f64);
+            // A pixel without a ray (outside the lens model's range) sees nothing.
+            Ray::new(eye, to_world * d.unwrap_or_else(|| -V3::z()))
+        })
+        .collect();
+    let hits = scene.intersect(&rays, false)?;
+    let (mut disagree, mut object_in_box) = (0, 0);
+    for (&(x, y), hit) in pixels.iter().zip(&hits) {
+        let object = sil.is_object_px(x, y);
+        object_in_box += usize::from(object);
+        disagree += usize::from(object != hit.is_some());
+    }
+    Ok(disagree + (sil.area_px - object_in_box))
+}
+
 /// Loss of one contour edge and the gradient on its two endpoints (world frame).
 pub fn edge_gradient(
     mesh: &TriMesh,

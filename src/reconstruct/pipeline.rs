@@ -112,8 +112,11 @@ fn choose_result(
     }
     let fit = |s: usize| {
         stages[s].validation.as_ref().map_or("-".into(), |v| {
+            let outline = (v.outline_px()).map_or(String::new(), |px| {
+                format!(", outline off by {px:.1} px a view")
+            });
             format!(
-                "refraction {:.4e}, silhouette {:.4e}",
+                "refraction {:.4e}, silhouette {:.4e}{outline}",
                 v.refraction, v.silhouette
             )
         })

@@ -1,8 +1,9 @@
 //! Held-out views: a share of the scan's views, spread evenly over the turntable, that the
 //! optimisation never sees. After every stage the mesh's fit to them is measured (the refraction
 //! and silhouette terms with the run's own residual forms and weights, over every
-//! `pixel_stride`-th pixel), so a run knows without ground truth when a stage made it worse; the
-//! stage that fits them best becomes the result.
+//! `pixel_stride`-th pixel, and the pixels where the mesh's own outline and the held-out mask
+//! disagree), so a run knows without ground truth when a stage made it worse; the stage that
+//! fits them best becomes the result.
 
 use std::collections::BTreeMap;
 
@@ -11,6 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use super::config::Settings;
 use super::Inputs;
+use crate::loss::silhouette::outline_disagreement;
 use crate::mesh::TriMesh;
 use crate::trace::path::MeshSurface;
 use crate::trace::BuildMode;
@@ -85,14 +87,31 @@ pub struct ValidationRecord {
     pub per_view: Vec<ViewFit>,
 }
 
+impl ValidationRecord {
+    /// The mean over the held-out views of the pixels where the mesh's outline and the mask
+    /// disagree, when every view counted them.
+    pub fn outline_px(&self) -> Option<f64> {
+        let counts: Option<Vec<f64>> = self.per_view.iter().map(|v| v.outline_px).collect();
+        counts
+            .filter(|c| !c.is_empty())
+            .map(|c| c.iter().sum::<f64>() / c.len() as f64)
+    }
+}
+
 /// One held-out view's fit: the weighted means of the two data terms over its pixels and its
-/// outline, times the run's weights (0 for a term the view has no data for).
+/// outline, times the run's weights (0 for a term the view has no data for), and how many
+/// pixels the mesh's outline and the mask disagree on.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ViewFit {
     /// The view's index in the scan.
     pub view: usize,
     pub refraction: f64,
     pub silhouette: f64,
+    /// Camera pixels covered by the mesh and outside the mask or the other way round
+    /// ([`crate::loss::silhouette::outline_disagreement`]); absent for a view without a mask and
+    /// from the reports of versions before it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outline_px: Option<f64>,
 }
 
 /// A term's loss and weight over one view.
@@ -138,23 +157,29 @@ pub fn validate_mesh(
     }
     let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
     let edges = mesh.interior_edges();
-    // Per view (sorted): the refraction and the silhouette term's sums.
-    let mut views: BTreeMap<usize, (Sums, Sums)> = BTreeMap::new();
+    // Per view (sorted): the refraction and the silhouette term's sums, the outline's pixels.
+    let mut views: BTreeMap<usize, ViewSums> = BTreeMap::new();
     for &t in &split.held_targets {
         let term = super::refraction_over(inputs, &surface, mesh, settings, &[(t, 0)])?;
         let sums = &mut views.entry(inputs.targets[t].view).or_default().0;
         *sums = sums.add(Sums::of(&term));
     }
     for &k in &split.held_silhouettes {
+        let sil = &inputs.silhouettes[k];
         let term = super::silhouette_over(inputs, &surface, mesh, &edges, settings, &[k])?;
-        let sums = &mut views.entry(inputs.silhouettes[k].view).or_default().1;
-        *sums = sums.add(Sums::of(&term));
+        let outline = outline_disagreement(mesh, sil, surface.scene())?;
+        let entry = views.entry(sil.view).or_default();
+        entry.1 = entry.1.add(Sums::of(&term));
+        entry.2 = Some(outline as f64);
     }
     Ok(Some(record(&views, settings)))
 }
 
-/// The pooled and per-view record of each view's (refraction, silhouette) sums.
-fn record(views: &BTreeMap<usize, (Sums, Sums)>, settings: &Settings) -> ValidationRecord {
+/// One held-out view's refraction and silhouette sums and its outline's disagreeing pixels.
+type ViewSums = (Sums, Sums, Option<f64>);
+
+/// The pooled and per-view record of each view's sums.
+fn record(views: &BTreeMap<usize, ViewSums>, settings: &Settings) -> ValidationRecord {
     let (wr, ws) = (settings.weight_refraction, settings.weight_silhouette);
     let pooled = (views.values()).fold((Sums::default(), Sums::default()), |a, e| {
         (a.0.add(e.0), a.1.add(e.1))
@@ -166,10 +191,11 @@ fn record(views: &BTreeMap<usize, (Sums, Sums)>, settings: &Settings) -> Validat
         total: r + s,
         views: views.len(),
         per_view: (views.iter())
-            .map(|(&view, &(rs, ss))| ViewFit {
+            .map(|(&view, &(rs, ss, outline_px))| ViewFit {
                 view,
                 refraction: rs.mean(wr),
                 silhouette: ss.mean(ws),
+                outline_px,
             })
             .collect(),
     }
@@ -209,11 +235,15 @@ fn lowest_total(done: &[super::StageReport], from: usize) -> Option<usize> {
 }
 
 /// Whether `later` fits the same held-out views better than `earlier` beyond the noise between
-/// views: its refraction term lower by more than [`SIGNIFICANT_T`] standard errors of the
-/// per-view differences (a paired comparison), and its silhouette term not higher by as much.
-/// The pooled total can prefer a coarser stage because the held-out masks' outlines, not the
-/// shape, dominate its silhouette term (docs/decisions.md); a finer stage must then earn its
-/// place view by view. False without per-view figures for the same views.
+/// views, by paired comparisons (the per-view differences' mean over their standard error) of
+/// two measures: the refraction term and the pixels where the mesh's outline and the mask
+/// disagree. One must be lower by more than [`SIGNIFICANT_T`] standard errors and the other not
+/// higher by as much. The pooled total can prefer a coarser stage because the held-out masks'
+/// outlines, not the shape, dominate its silhouette term, and that term's mean over contour
+/// edges changes with their number and zigzag at every edge length (docs/decisions.md): a finer
+/// stage must earn its place view by view. Where a record has no outline counts (an older
+/// checkpoint), the silhouette term stands in for them. False without per-view figures for the
+/// same views.
 pub fn fits_significantly_better(earlier: &ValidationRecord, later: &ValidationRecord) -> bool {
     let (e, l) = (&earlier.per_view, &later.per_view);
     let same_views = e.len() == l.len() && e.iter().zip(l).all(|(a, b)| a.view == b.view);
@@ -224,8 +254,14 @@ pub fn fits_significantly_better(earlier: &ValidationRecord, later: &ValidationR
         e.iter().zip(l).map(|(a, b)| term(a) - term(b)).collect()
     };
     let refraction = paired_t(&gain(|v| v.refraction));
-    let silhouette = paired_t(&gain(|v| v.silhouette));
-    refraction > SIGNIFICANT_T && silhouette > -SIGNIFICANT_T
+    let counted = e.iter().chain(l).all(|v| v.outline_px.is_some());
+    let outline = if counted {
+        paired_t(&gain(|v| v.outline_px.unwrap_or(0.0)))
+    } else {
+        paired_t(&gain(|v| v.silhouette))
+    };
+    let better = |a: f64, b: f64| a > SIGNIFICANT_T && b > -SIGNIFICANT_T;
+    better(refraction, outline) || better(outline, refraction)
 }
 
 /// The paired t statistic of `differences`: their mean over its standard error (±∞ when they
@@ -294,20 +330,31 @@ mod tests {
         assert_eq!(best_stage(&with_nan, 0, 2), Some(1));
     }
 
-    /// A record of seven held-out views with these per-view refraction and silhouette terms.
-    fn seven_views(refraction: [f64; 7], silhouette: [f64; 7]) -> ValidationRecord {
-        let views: BTreeMap<usize, (Sums, Sums)> = (0..7)
+    /// A record of seven held-out views with these per-view refraction and silhouette terms and
+    /// outline pixels (none: not counted).
+    fn seven_views_outlined(
+        refraction: [f64; 7],
+        silhouette: [f64; 7],
+        outline: Option<[f64; 7]>,
+    ) -> ValidationRecord {
+        let views: BTreeMap<usize, ViewSums> = (0..7)
             .map(|v| {
                 let sums = |x: f64| Sums {
                     loss: x,
                     weight: 1.0,
                 };
-                (5 + 10 * v, (sums(refraction[v]), sums(silhouette[v])))
+                let px = outline.map(|o| o[v]);
+                (5 + 10 * v, (sums(refraction[v]), sums(silhouette[v]), px))
             })
             .collect();
         let mut settings = Settings::preset(super::super::config::Preset::Balanced);
         (settings.weight_refraction, settings.weight_silhouette) = (1.0, 1.0);
         record(&views, &settings)
+    }
+
+    /// [`seven_views_outlined`] with the same outline in every view.
+    fn seven_views(refraction: [f64; 7], silhouette: [f64; 7]) -> ValidationRecord {
+        seven_views_outlined(refraction, silhouette, Some([100.0; 7]))
     }
 
     /// Stages 0, 1, … with these held-out fits.
@@ -328,6 +375,16 @@ mod tests {
         assert!((r.total - 4.5).abs() < 1e-12);
         assert_eq!(r.per_view[2].view, 25);
         assert_eq!(r.per_view[2].refraction, 3.0);
+        let outlined = seven_views_outlined(
+            [1.0; 7],
+            [0.5; 7],
+            Some([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]),
+        );
+        assert_eq!(outlined.outline_px(), Some(4.0));
+        assert_eq!(
+            seven_views_outlined([1.0; 7], [0.5; 7], None).outline_px(),
+            None
+        );
     }
 
     #[test]
@@ -356,9 +413,40 @@ mod tests {
         let one_view = seven_views(one_view, base_s);
         assert!(one_view.refraction < earlier.refraction);
         assert!(!fits_significantly_better(&earlier, &one_view));
-        // Consistently worse outlines in every view veto a refraction gain.
-        let bulged = seven_views(base_r.map(|r| 0.8 * r), base_s.map(|s| s + 0.05));
+        // Consistently worse outlines in every view veto a refraction gain; a higher contour
+        // term alone does not.
+        let outline = [100.0, 120.0, 90.0, 140.0, 110.0, 95.0, 130.0];
+        let earlier = seven_views_outlined(base_r, base_s, Some(outline));
+        let bulged = seven_views_outlined(
+            base_r.map(|r| 0.8 * r),
+            base_s,
+            Some(outline.map(|o| o + 12.0)),
+        );
         assert!(!fits_significantly_better(&earlier, &bulged));
+        let finer_contour = seven_views_outlined(
+            base_r.map(|r| 0.8 * r),
+            base_s.map(|s| s + 0.05),
+            Some(outline),
+        );
+        assert!(fits_significantly_better(&earlier, &finer_contour));
+        // Fewer disagreeing pixels in every view earn a finer stage its place when the
+        // refraction term is no better; the pooled total may still be higher.
+        let jitter = [1.02, 0.99, 1.01, 0.98, 1.0, 1.01, 0.99];
+        let sharper = seven_views_outlined(
+            std::array::from_fn(|v| base_r[v] * jitter[v]),
+            base_s.map(|s| s * 1.3),
+            Some(outline.map(|o| o - 9.0 - o / 50.0)),
+        );
+        assert!(sharper.total > earlier.total);
+        assert!(fits_significantly_better(&earlier, &sharper));
+        // Without outline counts (an older checkpoint) the contour term stands in.
+        let older = |r: [f64; 7], s: [f64; 7]| seven_views_outlined(r, s, None);
+        let (older_earlier, older_bulged) = (
+            older(base_r, base_s),
+            older(base_r.map(|r| 0.8 * r), base_s.map(|s| s + 0.05)),
+        );
+        assert!(!fits_significantly_better(&older_earlier, &older_bulged));
+        let earlier = seven_views(base_r, base_s);
         // Different views (or none per view: an older checkpoint) are never compared.
         let mut other = consistent.clone();
         other.per_view[0].view = 1;

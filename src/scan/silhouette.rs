@@ -116,6 +116,12 @@ impl Silhouette {
         )
     }
 
+    /// Whether pixel (x, y) (column, row; inside the image) is an object pixel of the mask (a
+    /// hole the decoder filled is not).
+    pub fn is_object_px(&self, x: usize, y: usize) -> bool {
+        self.sd[y * self.camera.width as usize + x] > 0.0
+    }
+
     /// The signed distance image at pixel coordinates (x, y), bilinear between pixel centres
     /// (clamped to the image).
     pub fn sd_px(&self, x: f64, y: f64) -> f64 {

@@ -10,12 +10,15 @@ use glasscan::loss::refraction::{
     add_view, footprint_gradient_into, footprint_offsets, pixel_gradient, MeshState, PixelAxes,
     PixelGradient, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
 };
-use glasscan::loss::silhouette::{contour_edges, edge_gradient, SilhouetteForm};
+use glasscan::loss::silhouette::{
+    contour_edges, edge_gradient, outline_disagreement, SilhouetteForm,
+};
 use glasscan::loss::smoothness::{add_smoothness, Smoothness};
 use glasscan::loss::{Accumulator, Contributions, DropReason, Robust};
 use glasscan::mesh::shapes::{ellipsoid, icosphere, perturb_radially};
 use glasscan::mesh::TriMesh;
 use glasscan::rig::{Camera, Turntable};
+use glasscan::scan::decoded::{MASK_FILLED, MASK_OBJECT};
 use glasscan::scan::silhouette::Silhouette;
 use glasscan::trace::path::{trace_chunk, MeshSurface, NormalModel, PathEnd, PathSettings, Trail};
 use glasscan::trace::refract::IOR_AIR;
@@ -835,6 +838,59 @@ fn only_contour_edges_on_the_meshs_own_outline_pull_with_a_short_probe() {
         short.abs() < 0.4 * drt,
         "probe 0.03 px: {short} against {drt}"
     );
+}
+
+#[test]
+fn the_outline_disagreement_counts_the_pixels_where_mesh_and_mask_differ() {
+    let mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 3);
+    let cam = ring_camera(320, 240, 700.0, [-0.05, 0.01, 0.0, 0.0, 0.0]);
+    let pose = Turntable {
+        axis_point: Point3::new(0.0, 0.0, 400.0),
+        axis_dir: -V3::y_axis(),
+        angles_deg: vec![30.0],
+    }
+    .view_poses()
+    .unwrap()[0];
+    let scene = Scene::new(&Device::new().unwrap(), &mesh, BuildMode::Static).unwrap();
+    // The mesh's own mask: pixel-centre rays that hit it.
+    let eye = pose.inverse() * Point3::origin();
+    let w = cam.width as usize;
+    let rays: Vec<Ray> = (0..w * cam.height as usize)
+        .map(|i| {
+            let d = cam.pixel_ray((i % w) as f64, (i / w) as f64).unwrap();
+            Ray::new(eye, pose.inverse() * d)
+        })
+        .collect();
+    let own: Vec<u8> = (scene.intersect(&rays, false).unwrap())
+        .iter()
+        .map(|h| h.is_some() as u8 * MASK_OBJECT)
+        .collect();
+    let count = |mask: &[u8]| {
+        let sil = Silhouette::from_mask(0, mask, &cam, pose).unwrap();
+        outline_disagreement(&mesh, &sil, &scene).unwrap()
+    };
+    assert_eq!(count(&own), 0);
+    let (cx, cy) = (w / 2, cam.height as usize / 2);
+    assert_eq!(
+        own[cy * w + cx],
+        MASK_OBJECT,
+        "the object covers the image centre"
+    );
+    // A 5×5 speck in a corner (beyond the mesh's projected box), a 3×3 hole in the object and
+    // the same hole marked filled by the decoder (background for the terms).
+    let mut speck = own.clone();
+    let mut hole = own.clone();
+    let mut filled = own.clone();
+    for d in 0..25 {
+        speck[(2 + d / 5) * w + 2 + d % 5] = MASK_OBJECT;
+    }
+    for d in 0..9 {
+        hole[(cy - 1 + d / 3) * w + cx - 1 + d % 3] = 0;
+        filled[(cy - 1 + d / 3) * w + cx - 1 + d % 3] = MASK_FILLED;
+    }
+    assert_eq!(count(&speck), 25);
+    assert_eq!(count(&hole), 9);
+    assert_eq!(count(&filled), 9);
 }
 
 /// Two views of `mesh` (an ellipsoid about 60 mm wide, 300 mm from a 160×120 camera) with exact
