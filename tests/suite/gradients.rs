@@ -23,7 +23,7 @@ use glasscan::scan::silhouette::Silhouette;
 use glasscan::trace::path::{trace_chunk, MeshSurface, NormalModel, PathEnd, PathSettings, Trail};
 use glasscan::trace::refract::IOR_AIR;
 use glasscan::trace::{BuildMode, Device, Ray, Scene};
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -790,6 +790,23 @@ fn silhouette_gradient_matches_finite_differences_and_drt_points_the_same_way() 
     );
 }
 
+/// The mask of the mesh in `scene` as `cam` at `pose` (world → camera) sees it: the pixels whose
+/// centre ray hits it.
+fn own_mask(scene: &Scene, cam: &Camera, pose: &Isometry3<f64>) -> Vec<u8> {
+    let eye = pose.inverse() * Point3::origin();
+    let w = cam.width as usize;
+    let rays: Vec<Ray> = (0..w * cam.height as usize)
+        .map(|i| {
+            let d = cam.pixel_ray((i % w) as f64, (i / w) as f64).unwrap();
+            Ray::new(eye, pose.inverse() * d)
+        })
+        .collect();
+    (scene.intersect(&rays, false).unwrap())
+        .iter()
+        .map(|h| h.is_some() as u8 * MASK_OBJECT)
+        .collect()
+}
+
 #[test]
 fn only_contour_edges_on_the_meshs_own_outline_pull_with_a_short_probe() {
     // The mask is the mesh's own (pixel-centre rays that hit it), so at this shape the term
@@ -807,15 +824,7 @@ fn only_contour_edges_on_the_meshs_own_outline_pull_with_a_short_probe() {
     let mean_sd = |probe: f64| {
         let (mut sum, mut n) = (0.0, 0usize);
         for (k, pose) in tt.view_poses().unwrap().into_iter().enumerate() {
-            let eye = pose.inverse() * Point3::origin();
-            let rays: Vec<Ray> = (0..cam.width * cam.height)
-                .map(|i| {
-                    let d = cam.pixel_ray((i % cam.width) as f64, (i / cam.width) as f64);
-                    Ray::new(eye, pose.inverse() * d.unwrap())
-                })
-                .collect();
-            let hits = scene.intersect(&rays, false).unwrap();
-            let mask: Vec<u8> = hits.iter().map(|h| h.is_some() as u8 * 255).collect();
+            let mask = own_mask(&scene, &cam, &pose);
             let sil = Silhouette::from_mask(k, &mask, &cam, pose).unwrap();
             for e in contour_edges(&mesh, &mesh.interior_edges(), &sil, &scene, probe).unwrap() {
                 let [a, b] = e
@@ -852,19 +861,8 @@ fn the_outline_disagreement_counts_the_pixels_where_mesh_and_mask_differ() {
     .view_poses()
     .unwrap()[0];
     let scene = Scene::new(&Device::new().unwrap(), &mesh, BuildMode::Static).unwrap();
-    // The mesh's own mask: pixel-centre rays that hit it.
-    let eye = pose.inverse() * Point3::origin();
+    let own = own_mask(&scene, &cam, &pose);
     let w = cam.width as usize;
-    let rays: Vec<Ray> = (0..w * cam.height as usize)
-        .map(|i| {
-            let d = cam.pixel_ray((i % w) as f64, (i / w) as f64).unwrap();
-            Ray::new(eye, pose.inverse() * d)
-        })
-        .collect();
-    let own: Vec<u8> = (scene.intersect(&rays, false).unwrap())
-        .iter()
-        .map(|h| h.is_some() as u8 * MASK_OBJECT)
-        .collect();
     let count = |mask: &[u8]| {
         let sil = Silhouette::from_mask(0, mask, &cam, pose).unwrap();
         outline_disagreement(&mesh, &sil, &scene).unwrap()
