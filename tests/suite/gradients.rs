@@ -695,6 +695,18 @@ fn ring_camera(w: u32, h: u32, f: f64, dist: [f64; 5]) -> Camera {
     }
 }
 
+/// The world → camera pose of one turntable view at `angle_deg`, the axis `distance` mm in front
+/// of the camera (the turntable's frame: +y up the axis).
+fn ring_pose(distance: f64, angle_deg: f64) -> Isometry3<f64> {
+    Turntable {
+        axis_point: Point3::new(0.0, 0.0, distance),
+        axis_dir: -V3::y_axis(),
+        angles_deg: vec![angle_deg],
+    }
+    .view_poses()
+    .unwrap()[0]
+}
+
 #[test]
 fn projection_jacobian_matches_finite_differences_with_distortion() {
     let cam = ring_camera(640, 480, 800.0, [-0.2, 0.1, 0.001, -0.002, 0.01]);
@@ -727,12 +739,7 @@ fn silhouette_setup(r: f64, r_mask: f64) -> (TriMesh, Silhouette) {
     let mut mesh = ellipsoid(V3::repeat(r), 3);
     perturb_radially(&mut mesh, 0.02 * r, 2);
     let cam = ring_camera(320, 240, 700.0, [-0.05, 0.01, 0.0, 0.0, 0.0]);
-    let tt = Turntable {
-        axis_point: Point3::new(0.0, 0.0, 400.0),
-        axis_dir: -V3::y_axis(),
-        angles_deg: vec![20.0],
-    };
-    let pose = tt.view_poses().unwrap()[0];
+    let pose = ring_pose(400.0, 20.0);
     let centre = pose * Point3::origin();
     let mask: Vec<u8> = (0..cam.width * cam.height)
         .map(|i| {
@@ -853,13 +860,7 @@ fn only_contour_edges_on_the_meshs_own_outline_pull_with_a_short_probe() {
 fn the_outline_disagreement_counts_the_pixels_where_mesh_and_mask_differ() {
     let mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 3);
     let cam = ring_camera(320, 240, 700.0, [-0.05, 0.01, 0.0, 0.0, 0.0]);
-    let pose = Turntable {
-        axis_point: Point3::new(0.0, 0.0, 400.0),
-        axis_dir: -V3::y_axis(),
-        angles_deg: vec![30.0],
-    }
-    .view_poses()
-    .unwrap()[0];
+    let pose = ring_pose(400.0, 30.0);
     let scene = Scene::new(&Device::new().unwrap(), &mesh, BuildMode::Static).unwrap();
     let own = own_mask(&scene, &cam, &pose);
     let w = cam.width as usize;
@@ -1036,13 +1037,7 @@ fn gradients_are_bitwise_the_same_on_any_number_of_threads() {
     let mut mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
     perturb_radially(&mut mesh, 0.3, 9);
     let cam = ring_camera(200, 150, 300.0, [0.0; 5]);
-    let pose = Turntable {
-        axis_point: Point3::new(0.0, 0.0, 300.0),
-        axis_dir: -V3::y_axis(),
-        angles_deg: vec![30.0],
-    }
-    .view_poses()
-    .unwrap()[0];
+    let pose = ring_pose(300.0, 30.0);
     let to_world = pose.inverse();
     let eye = to_world * Point3::origin();
     let view = ViewTargets {
