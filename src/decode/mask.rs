@@ -29,7 +29,7 @@ use anyhow::Result;
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, CV_32S};
 
 use super::graycode::PixelDecode;
-use crate::scan::decoded::{MASK_FILLED, MASK_OBJECT};
+use crate::scan::decoded::{is_object, MASK_FILLED, MASK_OBJECT};
 
 /// Thresholds of the silhouette rules.
 #[derive(Clone, Copy, Debug)]
@@ -275,6 +275,36 @@ pub fn pixels_at_monitor_edge(mask: &[u8], background: &[BackgroundPixel], width
                 || (y + 1 < height && unseen(i + width))
         })
         .count()
+}
+
+/// The outline coverage of a cleaned `mask` (the decoded form's `view_NNN_coverage.png`): for
+/// each pixel on the outline (an object pixel with a 4-neighbour that is not, or the reverse;
+/// filled holes count as background) where `background_share` is known, the share of it the
+/// object covers, 1 − share, kept on the pixel's side of ½ and stored as 1..=254 (c·255);
+/// elsewhere 255 for object and 0 for other pixels.
+pub fn outline_coverage(mask: &[u8], background_share: &[f32], width: usize) -> Vec<u8> {
+    let height = mask.len() / width.max(1);
+    let object = |i: usize| is_object(mask[i]);
+    (0..mask.len())
+        .map(|i| {
+            let (x, y) = (i % width, i / width);
+            let side = object(i);
+            let on_outline = (x > 0 && object(i - 1) != side)
+                || (x + 1 < width && object(i + 1) != side)
+                || (y > 0 && object(i - width) != side)
+                || (y + 1 < height && object(i + width) != side);
+            let share = background_share[i];
+            if !on_outline || share.is_nan() {
+                return if side { 255 } else { 0 };
+            }
+            let c = if side {
+                (1.0 - share).max(0.5)
+            } else {
+                (1.0 - share).min(0.5)
+            };
+            (c * 255.0).round().clamp(1.0, 254.0) as u8
+        })
+        .collect()
 }
 
 /// Drops small object regions (to 0) and marks holes that are small or thin (at most 2 pixels

@@ -22,7 +22,10 @@ use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
 use coherence::{background_share, fine_bits, FineDiffs};
 use graycode::{bit_contrasts, decode_view, BitTest, PixelDecode};
-use mask::{clean, pixels_at_monitor_edge, raw_mask, BackgroundPixel, MaskOptions, ViewPixels};
+use mask::{
+    clean, outline_coverage, pixels_at_monitor_edge, raw_mask, BackgroundPixel, MaskOptions,
+    ViewPixels,
+};
 
 /// Thresholds of decoding.
 #[derive(Clone, Copy, Debug)]
@@ -379,13 +382,19 @@ impl ViewWriter<'_> {
             }
         }
         let contrasts = object_contrasts(cap, &mask, &monitor);
+        let coverage = share
+            .as_deref()
+            .map(|s| outline_coverage(&mask, s, cap.width));
         form::write_view(
             out,
             k,
             (cap.width as u32, cap.height as u32),
             &mask,
             &monitor,
-            Some(&contrasts),
+            form::ViewExtras {
+                contrasts: Some(&contrasts),
+                coverage: coverage.as_deref(),
+            },
         )?;
         write_pixels(
             &out.join("preview").join(format!("view_{k:03}.png")),

@@ -82,7 +82,11 @@ pub fn silhouettes(scan: &Scan, views: &[usize]) -> Result<(Vec<Silhouette>, Vec
             let Some(mask) = decoded.mask(k)? else {
                 return Ok(None);
             };
-            Silhouette::from_mask(k, &mask, &scan.camera, poses[k]).map(Some)
+            let sil = Silhouette::from_mask(k, &mask, &scan.camera, poses[k])?;
+            match decoded.coverage(k)? {
+                Some(coverage) => sil.with_coverage(coverage).map(Some),
+                None => Ok(Some(sil)),
+            }
         })
         .collect();
     let mut sils = Vec::new();

@@ -272,7 +272,9 @@ impl Settings {
             target_weights: TargetWeights::Uniform,
             warmup_stages: 3,
             validation_share: 0.1,
-            min_cos: 0.0,
+            // Grazing and near-critical rays are dropped: their decoded points lie off the
+            // centre ray's, outward (docs/decisions.md).
+            min_cos: 0.3,
             footprint: 1,
             weight_bits: 0.01,
             robust_anneal: 1.0,
@@ -330,6 +332,7 @@ impl Settings {
                 smoothness: Smoothness::NegLogOnePlusCos,
                 warmup_stages: 0,
                 validation_share: 0.0,
+                min_cos: 0.0,
                 average_share: 0.0,
                 weight_bits: 0.0,
                 weight_unseen: 0.0,

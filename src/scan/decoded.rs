@@ -10,6 +10,10 @@
 //! - `view_NNN_bits.png` (optional; written by `glasscan decode`): 16-bit, 4 channels: the
 //!   measured contrasts (pattern − inverse)/(white − black) of the last reliable and the first
 //!   unreliable Gray bit along u, then along v, as (c + 1)·32767; 65535 where a bit is absent;
+//! - `view_NNN_coverage.png` (optional; written by `glasscan decode` with a captured
+//!   background): 8-bit, for the pixels on the outline the share c of the pixel the object
+//!   covers, as 1..=254 (c·255); 255 and 0 elsewhere (object, background: not measured). The
+//!   silhouette places its outline within those pixels ([`super::outline`]);
 //! - `view_NNN_rays.bin` (imported scans, instead of the monitor image): per object pixel its
 //!   camera ray and its 3D target, camera frame (see [`write_rays`]);
 //! - `summary.json`: `fixed_point_scale` s and per-view figures, with the warning of any view that
@@ -186,22 +190,37 @@ pub fn contrasts_path(dir: &Path, k: usize) -> PathBuf {
     dir.join(format!("view_{k:03}_bits.png"))
 }
 
-/// Writes view `k`'s mask (0, [`MASK_FILLED`], [`MASK_OBJECT`]), monitor points and bit contrasts, if any (encoded as above),
-/// into `dir`.
+/// Path of view `k`'s outline coverage in the decoded folder `dir`.
+pub fn coverage_path(dir: &Path, k: usize) -> PathBuf {
+    dir.join(format!("view_{k:03}_coverage.png"))
+}
+
+/// What one view's decoded form holds besides its mask and monitor points (each optional).
+#[derive(Clone, Copy, Default)]
+pub struct ViewExtras<'a> {
+    pub contrasts: Option<&'a [Vec4w]>,
+    pub coverage: Option<&'a [u8]>,
+}
+
+/// Writes view `k`'s mask (0, [`MASK_FILLED`], [`MASK_OBJECT`]), monitor points, and its bit
+/// contrasts and outline coverage if any (encoded as above), into `dir`.
 pub fn write_view(
     dir: &Path,
     k: usize,
     (width, height): (u32, u32),
     mask: &[u8],
     monitor: &[Vec4w],
-    contrasts: Option<&[Vec4w]>,
+    extras: ViewExtras,
 ) -> Result<()> {
     write_pixels(&mask_path(dir, k), width, height, mask)?;
     write_pixels(&monitor_path(dir, k), width, height, monitor)?;
-    match contrasts {
-        Some(c) => write_pixels(&contrasts_path(dir, k), width, height, c),
-        None => Ok(()),
+    if let Some(c) = extras.contrasts {
+        write_pixels(&contrasts_path(dir, k), width, height, c)?;
     }
+    if let Some(c) = extras.coverage {
+        write_pixels(&coverage_path(dir, k), width, height, c)?;
+    }
+    Ok(())
 }
 
 /// Writes `summary.json`.
@@ -325,6 +344,16 @@ impl DecodedScan {
             rays: None,
             contrasts: self.contrasts(k)?,
         }))
+    }
+
+    /// View `k`'s outline coverage (see [`coverage_path`]), if the decode wrote it.
+    pub fn coverage(&self, k: usize) -> Result<Option<Vec<u8>>> {
+        let path = coverage_path(&self.dir, k);
+        if !path.is_file() {
+            return Ok(None);
+        }
+        let m = self.load(&path, opencv::core::CV_8UC1)?;
+        Ok(Some(m.data_typed::<u8>()?.to_vec()))
     }
 
     /// View `k`'s measured bit contrasts, if the decode wrote them.

@@ -25,6 +25,7 @@
 //! ```
 
 pub mod decoded;
+pub mod outline;
 pub mod silhouette;
 
 use std::path::{Path, PathBuf};

@@ -4,6 +4,10 @@
 //! Holes the decoder filled ([`MASK_FILLED`]) are outside the silhouette (the losses' view: a
 //! gap between two parts of the object shows there) and kept apart, so that the visual hull can
 //! count them inside ([`Silhouette::with_holes_filled`]).
+//!
+//! Where the decoder measured how much of each pixel on the outline the object covers, the
+//! distances near the outline are refined to a fraction of a pixel ([`Silhouette::with_coverage`],
+//! [`super::outline`]).
 
 use std::borrow::Cow;
 
@@ -31,6 +35,9 @@ pub struct Silhouette {
     filled: Vec<u32>,
     /// The mask reaches the image border (the object may be cut off).
     pub touches_border: bool,
+    /// The measured coverage of the outline's pixels the distances were refined with, if any
+    /// (`view_NNN_coverage.png`'s values).
+    coverage: Option<Vec<u8>>,
 }
 
 impl Silhouette {
@@ -82,7 +89,25 @@ impl Silhouette {
             area_px,
             filled,
             touches_border,
+            coverage: None,
         })
+    }
+
+    /// This silhouette with its distances near the outline refined by the measured `coverage`
+    /// of the outline's pixels (row-major, the camera's size; see [`super::outline::UNMEASURED`]).
+    pub fn with_coverage(mut self, coverage: Vec<u8>) -> Result<Self> {
+        if coverage.len() != self.sd.len() {
+            bail!(
+                "view {}: the coverage image has {} pixels, the camera {}",
+                self.view,
+                coverage.len(),
+                self.sd.len()
+            );
+        }
+        let inside: Vec<bool> = self.sd.iter().map(|&d| d > 0.0).collect();
+        super::outline::refine(&mut self.sd, &inside, &coverage, self.camera.width as usize);
+        self.coverage = Some(coverage);
+        Ok(self)
     }
 
     /// This silhouette with the holes the decoder filled counted inside (the visual hull's
@@ -95,7 +120,15 @@ impl Silhouette {
         for &i in &self.filled {
             mask[i as usize] = 255;
         }
-        Self::from_mask(self.view, &mask, &self.camera, self.pose).map(Cow::Owned)
+        let filled = Self::from_mask(self.view, &mask, &self.camera, self.pose)?;
+        let Some(coverage) = &self.coverage else {
+            return Ok(Cow::Owned(filled));
+        };
+        let mut coverage = coverage.clone();
+        for &i in &self.filled {
+            coverage[i as usize] = 255;
+        }
+        filled.with_coverage(coverage).map(Cow::Owned)
     }
 
     /// The four pixels around (x, y) (clamped to the image) and the position between them.

@@ -622,7 +622,14 @@ fn write_exact_decoded(
             _ => Vec4w::from([NONE; 4]),
         })
         .collect();
-    crate::scan::decoded::write_view(dir, k, (cam.width, cam.height), &mask, &monitor, None)?;
+    crate::scan::decoded::write_view(
+        dir,
+        k,
+        (cam.width, cam.height),
+        &mask,
+        &monitor,
+        Default::default(),
+    )?;
     let object = mask.iter().filter(|&&m| m == 255).count();
     let decoded = monitor.iter().filter(|m| m[0] != NONE).count();
     Ok(ViewSummary {

@@ -435,6 +435,69 @@ fn silhouettes_of_physical_captures_keep_their_outline() {
     eprintln!("{overall}");
     assert!(iou >= 0.99, "{overall}");
     assert!(offset.abs() <= 0.15, "{overall}");
+    // The measured coverage of the outline's pixels places the silhouette's outline within a
+    // pixel: the true mesh's contour lies nearer its zero level than the binary mask's.
+    let (binary, refined) = contour_offsets_px(&scan);
+    eprintln!(
+        "true contour off the outline by {binary:.3} px (binary) and {refined:.3} px (coverage)"
+    );
+    assert!(
+        refined < 0.7 * binary,
+        "{refined} px with coverage, {binary} px without"
+    );
+}
+
+/// Mean distance (camera pixels) from the decoded silhouettes' outlines to the true mesh's
+/// contour (its probed contour edges' midpoints, those within a pixel), every view of the scan:
+/// from the binary masks alone, and refined by the decode's outline coverage.
+fn contour_offsets_px(scan_dir: &std::path::Path) -> (f64, f64) {
+    use glasscan::loss::silhouette::contour_edges;
+    use glasscan::scan::decoded::DecodedScan;
+    use glasscan::scan::silhouette::Silhouette;
+    use glasscan::trace::{BuildMode, Device, Scene};
+    let scan = glasscan::scan::Scan::open(scan_dir).unwrap();
+    let truth = glasscan::mesh::io::read_mesh(&scan_dir.join("ground_truth.ply")).unwrap();
+    let scene = Scene::new(&Device::new().unwrap(), &truth, BuildMode::Static).unwrap();
+    let edges = truth.interior_edges();
+    let views: Vec<usize> = (0..scan.config.views.angles_deg.len()).collect();
+    let (refined, _) = glasscan::hull::silhouettes(&scan, &views).unwrap();
+    let decoded = DecodedScan::open(scan_dir, (scan.camera.width, scan.camera.height)).unwrap();
+    let mean_offset = |sil: &Silhouette| {
+        let contour = contour_edges(&truth, &edges, sil, &scene, 0.03).unwrap();
+        let offsets: Vec<f64> = contour
+            .iter()
+            .map(|e| {
+                let [a, b] = e.verts.map(|v| {
+                    let q = sil.pose * truth.positions[v as usize];
+                    sil.camera.project(&q).unwrap()
+                });
+                let m = nalgebra::center(&a, &b);
+                sil.sd_px(m.x, m.y).abs()
+            })
+            .filter(|d| *d <= 1.0)
+            .collect();
+        assert!(
+            offsets.len() > 50,
+            "view {}: {} contour edges",
+            sil.view,
+            offsets.len()
+        );
+        offsets.iter().sum::<f64>() / offsets.len() as f64
+    };
+    let (mut sum_binary, mut sum_refined) = (0.0, 0.0);
+    for sil in &refined {
+        assert!(
+            decoded.coverage(sil.view).unwrap().is_some(),
+            "view {}: no coverage",
+            sil.view
+        );
+        let mask = decoded.mask(sil.view).unwrap().unwrap();
+        let binary = Silhouette::from_mask(sil.view, &mask, &sil.camera, sil.pose).unwrap();
+        sum_binary += mean_offset(&binary);
+        sum_refined += mean_offset(sil);
+    }
+    let n = refined.len() as f64;
+    (sum_binary / n, sum_refined / n)
 }
 
 #[test]
@@ -517,4 +580,56 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("per-bit term is idle"), "{err}");
+}
+
+#[test]
+fn decoded_points_of_grazing_rays_pull_the_true_shape_outward() {
+    // Through a blurred camera a pixel's decoded point is not where its centre ray lands: on a
+    // curved surface seen at grazing incidence the footprint is stretched unevenly, and the
+    // decoded points lie where a larger shape would put them. At the true ellipsoid the
+    // refraction term's derivative along the outward normals is negative (it would inflate the
+    // shape); the presets' `min_cos` drops those rays and most of the pull with them.
+    use glasscan::loss::refraction::{add_view, RefractionSettings, ResidualForm};
+    use glasscan::loss::{targets::scan_targets, Accumulator, Robust};
+    use glasscan::trace::path::{MeshSurface, NormalModel};
+    let dir = tempfile::tempdir().unwrap();
+    let scan_dir = captured_ellipsoid(dir.path(), 4, Transport::Simple);
+    crate::common::ok(&glasscan(&["decode", scan_dir.to_str().unwrap()]));
+    let scan = glasscan::scan::Scan::open(&scan_dir).unwrap();
+    let (views, _) = scan_targets(&scan, &[0, 1, 2, 3], Default::default()).unwrap();
+    let truth = glasscan::mesh::io::read_mesh(&scan_dir.join("ground_truth.ply")).unwrap();
+    let surface = MeshSurface::new(&truth, NormalModel::Vertex).unwrap();
+    let normals = truth.vertex_normals();
+    // dL/d(outward offset of every vertex, mm) per pixel used, and the pixels used.
+    let inflation_slope = |min_cos| {
+        let s = RefractionSettings {
+            ior: scan.config.ior,
+            ior_air: glasscan::trace::refract::IOR_AIR,
+            max_refractions: 2,
+            normals: NormalModel::Vertex,
+            form: ResidualForm::Direction,
+            robust: Robust::Cauchy(0.2),
+            min_cos,
+            footprint: 1,
+            bit_weight: 0.0,
+        };
+        let mut acc = Accumulator::new(truth.positions.len(), true);
+        for v in &views {
+            add_view(&surface, &truth, Some(&normals), &s, v, &mut acc).unwrap();
+        }
+        let used = acc.used;
+        let grad = acc.finish(&truth);
+        let slope: f64 = grad.iter().zip(&normals).map(|(g, n)| g.dot(n)).sum();
+        (slope / used as f64, used)
+    };
+    let ((all, n_all), (kept, n_kept)) = (inflation_slope(0.0), inflation_slope(0.3));
+    eprintln!(
+        "outward slope per pixel at the truth: {all:.3e} with every ray ({n_all}), {kept:.3e} without grazing ones ({n_kept})"
+    );
+    assert!(all < 0.0, "every ray: slope {all}");
+    assert!(kept.abs() < 0.5 * all.abs(), "{kept} against {all}");
+    assert!(
+        n_kept as f64 > 0.6 * n_all as f64,
+        "{n_kept} of {n_all} pixels kept"
+    );
 }
