@@ -508,8 +508,8 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
     // through one 1 % larger (0.2–0.3 mm) they fit far worse, though there the term drops the
     // pixels whose footprint left its cell. Wrong conventions (bit order, sign,
     // the pixel-centre offset) would fit the truth no better than anything else.
-    use glasscan::loss::refraction::{add_view, RefractionSettings, ResidualForm};
-    use glasscan::loss::{targets::scan_targets, Accumulator, Robust};
+    use glasscan::loss::refraction::add_view;
+    use glasscan::loss::{targets::scan_targets, Accumulator};
     use glasscan::mesh::TriMesh;
     use glasscan::trace::path::{MeshSurface, NormalModel};
     let dir = tempfile::tempdir().unwrap();
@@ -531,17 +531,7 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
         .filter(|p| p.bits.any())
         .count();
     assert!(with_bits > 5000, "{with_bits} pixels with measured bits");
-    let settings = |bit_weight| RefractionSettings {
-        ior: scan.config.ior,
-        ior_air: glasscan::trace::refract::IOR_AIR,
-        max_refractions: 2,
-        normals: NormalModel::Vertex,
-        form: ResidualForm::Direction,
-        robust: Robust::Cauchy(0.2),
-        min_cos: 0.0,
-        footprint: 2,
-        bit_weight,
-    };
+    let settings = |bit_weight| refraction_settings(scan.config.ior, 0.0, 2, bit_weight);
     // The per-bit term per pixel: the term with it minus the term without.
     let bit_loss = |mesh: &TriMesh| {
         let surface = MeshSurface::new(mesh, NormalModel::Vertex).unwrap();
@@ -589,8 +579,8 @@ fn decoded_points_of_grazing_rays_pull_the_true_shape_outward() {
     // decoded points lie where a larger shape would put them. At the true ellipsoid the
     // refraction term's derivative along the outward normals is negative (it would inflate the
     // shape); the presets' `min_cos` drops those rays and most of the pull with them.
-    use glasscan::loss::refraction::{add_view, RefractionSettings, ResidualForm};
-    use glasscan::loss::{targets::scan_targets, Accumulator, Robust};
+    use glasscan::loss::refraction::add_view;
+    use glasscan::loss::{targets::scan_targets, Accumulator};
     use glasscan::trace::path::{MeshSurface, NormalModel};
     let dir = tempfile::tempdir().unwrap();
     let scan_dir = captured_ellipsoid(dir.path(), 4, Transport::Simple);
@@ -602,17 +592,7 @@ fn decoded_points_of_grazing_rays_pull_the_true_shape_outward() {
     let normals = truth.vertex_normals();
     // dL/d(outward offset of every vertex, mm) per pixel used, and the pixels used.
     let inflation_slope = |min_cos| {
-        let s = RefractionSettings {
-            ior: scan.config.ior,
-            ior_air: glasscan::trace::refract::IOR_AIR,
-            max_refractions: 2,
-            normals: NormalModel::Vertex,
-            form: ResidualForm::Direction,
-            robust: Robust::Cauchy(0.2),
-            min_cos,
-            footprint: 1,
-            bit_weight: 0.0,
-        };
+        let s = refraction_settings(scan.config.ior, min_cos, 1, 0.0);
         let mut acc = Accumulator::new(truth.positions.len(), true);
         for v in &views {
             add_view(&surface, &truth, Some(&normals), &s, v, &mut acc).unwrap();
@@ -632,4 +612,25 @@ fn decoded_points_of_grazing_rays_pull_the_true_shape_outward() {
         n_kept as f64 > 0.6 * n_all as f64,
         "{n_kept} of {n_all} pixels kept"
     );
+}
+
+/// The presets' refraction term (smooth normals, direction residual, Cauchy 0.2, two
+/// refractions) with `min_cos`, `footprint` rays per pixel side and the per-bit weight.
+fn refraction_settings(
+    ior: f64,
+    min_cos: f64,
+    footprint: u32,
+    bit_weight: f64,
+) -> glasscan::loss::refraction::RefractionSettings {
+    glasscan::loss::refraction::RefractionSettings {
+        ior,
+        ior_air: glasscan::trace::refract::IOR_AIR,
+        max_refractions: 2,
+        normals: glasscan::trace::path::NormalModel::Vertex,
+        form: glasscan::loss::refraction::ResidualForm::Direction,
+        robust: glasscan::loss::Robust::Cauchy(0.2),
+        min_cos,
+        footprint,
+        bit_weight,
+    }
 }
