@@ -30,6 +30,7 @@ use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, CV_32S};
 
 use super::graycode::PixelDecode;
 use crate::scan::decoded::{is_object, MASK_FILLED, MASK_OBJECT};
+use crate::scan::outline::encode_coverage;
 
 /// Thresholds of the silhouette rules.
 #[derive(Clone, Copy, Debug)]
@@ -212,13 +213,7 @@ fn trim_mixed_edge(
 ) {
     let height = mask.len() / width;
     for _ in 0..TRIM_PASSES {
-        let is_edge = |m: &[u8], i: usize| {
-            let (x, y) = (i % width, i / width);
-            (x > 0 && m[i - 1] == 0)
-                || (x + 1 < width && m[i + 1] == 0)
-                || (y > 0 && m[i - width] == 0)
-                || (y + 1 < height && m[i + width] == 0)
-        };
+        let is_edge = |m: &[u8], i: usize| any_4_neighbour(i, width, height, |j| m[j] == 0);
         let inner_ratio = |m: &[u8], i: usize| {
             let (x, y) = (i % width, i / width);
             let mut lowest: Option<f32> = None;
@@ -267,13 +262,7 @@ pub fn pixels_at_monitor_edge(mask: &[u8], background: &[BackgroundPixel], width
     let height = mask.len() / width.max(1);
     (0..mask.len())
         .filter(|&i| mask[i] == 255)
-        .filter(|&i| {
-            let (x, y) = (i % width, i / width);
-            (x > 0 && unseen(i - 1))
-                || (x + 1 < width && unseen(i + 1))
-                || (y > 0 && unseen(i - width))
-                || (y + 1 < height && unseen(i + width))
-        })
+        .filter(|&i| any_4_neighbour(i, width, height, unseen))
         .count()
 }
 
@@ -287,24 +276,25 @@ pub fn outline_coverage(mask: &[u8], background_share: &[f32], width: usize) -> 
     let object = |i: usize| is_object(mask[i]);
     (0..mask.len())
         .map(|i| {
-            let (x, y) = (i % width, i / width);
             let side = object(i);
-            let on_outline = (x > 0 && object(i - 1) != side)
-                || (x + 1 < width && object(i + 1) != side)
-                || (y > 0 && object(i - width) != side)
-                || (y + 1 < height && object(i + width) != side);
+            let on_outline = any_4_neighbour(i, width, height, |j| object(j) != side);
             let share = background_share[i];
             if !on_outline || share.is_nan() {
                 return if side { 255 } else { 0 };
             }
-            let c = if side {
-                (1.0 - share).max(0.5)
-            } else {
-                (1.0 - share).min(0.5)
-            };
-            (c * 255.0).round().clamp(1.0, 254.0) as u8
+            encode_coverage(1.0 - share, side)
         })
         .collect()
+}
+
+/// Whether pixel `i` of a `width` × `height` image (row-major) has a 4-neighbour `j` with
+/// `pred(j)`.
+fn any_4_neighbour(i: usize, width: usize, height: usize, pred: impl Fn(usize) -> bool) -> bool {
+    let (x, y) = (i % width, i / width);
+    (x > 0 && pred(i - 1))
+        || (x + 1 < width && pred(i + 1))
+        || (y > 0 && pred(i - width))
+        || (y + 1 < height && pred(i + width))
 }
 
 /// Drops small object regions (to 0) and marks holes that are small or thin (at most 2 pixels

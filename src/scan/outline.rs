@@ -21,6 +21,28 @@ type V2 = Vector2<f64>;
 /// background (0) as far as the decoder knows. Measured values are 1..=254 (c·255, rounded).
 pub const UNMEASURED: [u8; 2] = [0, 255];
 
+/// The stored value of a measured coverage `c` of a pixel on the `inside` (object) or outside
+/// side of the outline: c kept on that side of ½, as 1..=254 (c·255).
+pub fn encode_coverage(c: f32, inside: bool) -> u8 {
+    let c = if inside { c.max(0.5) } else { c.min(0.5) };
+    (c * 255.0).round().clamp(1.0, 254.0) as u8
+}
+
+/// The coverage stored value `v` of a pixel on the `inside` or outside side of the outline
+/// stands for, kept on that side of ½; unmeasured: 1 inside, 0 outside.
+fn decode_coverage(v: u8, inside: bool) -> f64 {
+    let c = if UNMEASURED.contains(&v) {
+        f64::from(u8::from(inside))
+    } else {
+        f64::from(v) / 255.0
+    };
+    if inside {
+        c.max(0.5)
+    } else {
+        c.min(0.5)
+    }
+}
+
 /// Pixels nearer the binary outline than this (pixels) get their distance from the refined
 /// contour; farther ones keep the binary distance.
 const BAND_PX: f32 = 3.0;
@@ -91,18 +113,7 @@ fn contour_pieces(
     width: usize,
     height: usize,
 ) -> Vec<Vec<Piece>> {
-    // Coverage kept on each pixel's side of ½; unmeasured: 1 inside, 0 outside.
-    let c = |i: usize| -> f64 {
-        let v = match coverage[i] {
-            v if UNMEASURED.contains(&v) => f64::from(u8::from(inside[i])),
-            v => f64::from(v) / 255.0,
-        };
-        if inside[i] {
-            v.max(0.5)
-        } else {
-            v.min(0.5)
-        }
-    };
+    let c = |i: usize| decode_coverage(coverage[i], inside[i]);
     (0..(width - 1) * (height - 1))
         .map(|k| {
             let (x, y) = (k % (width - 1), k / (width - 1));
@@ -120,6 +131,9 @@ fn contour_pieces(
                 V2::new(x as f64, y as f64 + 1.0),
             ];
             let side = idx.map(|i| inside[i]);
+            if side.iter().all(|&s| s == side[0]) {
+                return Vec::new();
+            }
             let cov = idx.map(c);
             // The crossing on edge e (from corner e to corner e + 1), if the sides differ.
             let crossing = |e: usize| -> Option<V2> {
