@@ -249,6 +249,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         form: a.form,
         robust: a.robust,
         min_cos: 0.0,
+        grazing_cell_footprints: 0.0,
         footprint: a.footprint,
         bit_weight: 0.0,
     };

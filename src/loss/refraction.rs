@@ -53,9 +53,16 @@ pub struct RefractionSettings {
     pub robust: Robust,
     /// Rays meeting an interface with cos θi or cos θt below this are dropped (their gradients
     /// grow as 1/cos: near grazing and near the critical angle one ray would outweigh
-    /// thousands); 0 keeps every ray with a usable derivative.
+    /// thousands; and through a blurred camera their decoded points lie outward of the centre
+    /// ray's); 0 keeps every ray with a usable derivative.
     #[serde(default)]
     pub min_cos: f64,
+    /// Pixels whose decoded cell is at most this many direct footprints wide
+    /// ([`PixelTarget::cell_footprints`]) keep their rays below `min_cos`: the glass then
+    /// magnified the pixel's footprint little, as a slab does, and a slab's rays land where a
+    /// blurred footprint's centre does. 0: `min_cos` applies to every pixel.
+    #[serde(default)]
+    pub grazing_cell_footprints: f64,
     /// Rays per pixel side, 1..=[`MAX_FOOTPRINT`]: each pixel is modelled by the mean of an n×n
     /// grid of rays over its area (1: the centre ray).
     pub footprint: u32,
@@ -96,13 +103,29 @@ impl PixelAxes {
 }
 
 /// One object pixel of a view: its camera ray (world frame, unit direction), the decoded monitor
-/// point Q (world frame, mm), its weight and its measured Gray bits (none for imported rays).
+/// point Q (world frame, mm), its weight, its measured Gray bits (none for imported rays) and
+/// the wider side of its decoded cell in direct footprints: over the width of a camera pixel's
+/// footprint on the monitor seen without the object, at Q's distance (infinite where unknown,
+/// as for imported rays).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PixelTarget {
     pub dir: V3,
     pub target: Point3<f64>,
     pub weight: f64,
     pub bits: PixelBits,
+    pub cell_footprints: f32,
+}
+
+impl PixelTarget {
+    /// The cos θ below which this pixel's rays are dropped (`min_cos`, or 0 for a pixel whose
+    /// decoded cell is fine enough: [`RefractionSettings::grazing_cell_footprints`]).
+    fn min_cos(&self, s: &RefractionSettings) -> f64 {
+        if (self.cell_footprints as f64) <= s.grazing_cell_footprints {
+            0.0
+        } else {
+            s.min_cos
+        }
+    }
 }
 
 /// The refraction data of one view, world frame.
@@ -220,9 +243,10 @@ pub fn footprint_gradient_into(
 ) -> Result<(), DropReason> {
     let mut paths: ArrayVec<(Forward, Exit), MAX_FOOTPRINT_RAYS> = ArrayVec::new();
     let mut first_drop = None;
+    let min_cos = px.min_cos(s);
     for (dir, prims) in rays.iter().take(MAX_FOOTPRINT_RAYS) {
         let path = (*prims).and_then(|p| {
-            let f = forward(mesh, s, &view.eye, dir, p)?;
+            let f = forward(mesh, s, min_cos, &view.eye, dir, p)?;
             let e = exit_residual(s, view, &px.target, &f.o, &f.d)?;
             Ok((f, e))
         });
@@ -338,10 +362,12 @@ struct Forward {
     d: V3,
 }
 
-/// The ray from `eye` along `dir` through the triangles `prims`.
+/// The ray from `eye` along `dir` through the triangles `prims`, dropped where it meets one with
+/// cos θi or cos θt below `min_cos`.
 fn forward(
     mesh: &MeshState,
     s: &RefractionSettings,
+    min_cos: f64,
     eye: &Point3<f64>,
     dir: &V3,
     prims: &[u32],
@@ -352,7 +378,7 @@ fn forward(
     let mut chain = ArrayVec::new();
     let (mut o, mut d) = (*eye, *dir);
     for &prim in prims {
-        let it = refract_at(mesh, s, &o, &d, prim)?;
+        let it = refract_at(mesh, s, min_cos, &o, &d, prim)?;
         (o, d) = (it.hit.point, it.snell.out / it.out_norm);
         chain.push(it);
     }
@@ -360,10 +386,12 @@ fn forward(
 }
 
 /// Forward through one interface: the ray (o, d) meets triangle `prim`'s plane and refracts
-/// (face or interpolated vertex normal); everything the backward pass needs.
+/// (face or interpolated vertex normal); everything the backward pass needs, or why the ray is
+/// dropped (cos θi or cos θt below `min_cos`).
 fn refract_at(
     mesh: &MeshState,
     s: &RefractionSettings,
+    min_cos: f64,
     o: &Point3<f64>,
     d: &V3,
     prim: u32,
@@ -394,10 +422,10 @@ fn refract_at(
         SnellFailure::Grazing => DropReason::Grazing,
         SnellFailure::Critical => DropReason::NearCritical,
     })?;
-    if sn.cos_i < s.min_cos {
+    if sn.cos_i < min_cos {
         return Err(DropReason::Grazing);
     }
-    if sn.cos_t < s.min_cos {
+    if sn.cos_t < min_cos {
         return Err(DropReason::NearCritical);
     }
     Ok(Interface {

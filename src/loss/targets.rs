@@ -39,6 +39,21 @@ impl TargetWeights {
     }
 }
 
+/// The wider side of decoded point `t`'s cell over the width of a camera pixel's footprint on
+/// the monitor seen directly, at the point's distance (the camera sits at the origin of the
+/// frame `scan.screen` is given in). Infinite (unknown) where that footprint is narrower than
+/// a monitor pixel: no cell is narrower than one, so the cell cannot tell how much the glass
+/// magnified the footprint.
+fn cell_footprints(scan: &Scan, t: &MonitorTarget) -> f32 {
+    let distance_mm = scan.screen.point(t.u, t.v).coords.norm();
+    let pixel_rad = 2.0 / (scan.camera.fx + scan.camera.fy);
+    let footprint_px = distance_mm * pixel_rad / scan.screen.pitch_mm;
+    if footprint_px < 1.0 {
+        return f32::INFINITY;
+    }
+    (t.cell_u.max(t.cell_v) / footprint_px) as f32
+}
+
 /// A decoded point's measured bits (none without contrasts).
 fn pixel_bits(t: &MonitorTarget, contrasts: Option<[f32; 4]>) -> PixelBits {
     let Some(c) = contrasts else {
@@ -77,6 +92,7 @@ pub fn scan_targets(
                         target: to_world * r.target,
                         weight: 1.0,
                         bits: PixelBits::default(),
+                        cell_footprints: f32::INFINITY,
                     })
                     .collect()
             } else {
@@ -92,6 +108,7 @@ pub fn scan_targets(
                             target: screen.point(t.u, t.v),
                             weight: weights.weight(t),
                             bits: pixel_bits(t, dv.contrasts.as_ref().map(|c| c[i])),
+                            cell_footprints: cell_footprints(scan, t),
                         })
                     })
                     .collect()

@@ -106,6 +106,11 @@ pub struct Settings {
     /// Refraction rays meeting an interface with cos θi or cos θt below this are dropped
     /// (bounded per-ray influence; 0: only those without a usable derivative).
     pub min_cos: f64,
+    /// Pixels whose decoded cell is at most this many direct footprints wide (a camera pixel's
+    /// footprint on the monitor seen without the object) keep their rays below `min_cos` (0:
+    /// none do; absent in reports written before it existed).
+    #[serde(default)]
+    pub grazing_cell_footprints: f64,
     /// Refraction rays per pixel side: a pixel is modelled by the mean residual of an n×n grid
     /// of rays over its area (1: its centre ray; the cost grows as n²).
     #[serde(default = "one")]
@@ -273,8 +278,10 @@ impl Settings {
             warmup_stages: 3,
             validation_share: 0.1,
             // Grazing and near-critical rays are dropped: their decoded points lie off the
-            // centre ray's, outward (docs/decisions.md).
+            // centre ray's, outward; not where the decoded cell is fine, as on flat faces seen
+            // edge-on (docs/decisions.md).
             min_cos: 0.3,
+            grazing_cell_footprints: 3.0,
             footprint: 1,
             weight_bits: 0.01,
             robust_anneal: 1.0,
@@ -405,6 +412,9 @@ impl Settings {
         }
         if !(0.0..0.5).contains(&self.min_cos) {
             return bad("min_cos", "must lie in [0, 0.5)");
+        }
+        if !(self.grazing_cell_footprints >= 0.0 && self.grazing_cell_footprints.is_finite()) {
+            return bad("grazing_cell_footprints", "must be 0 or more");
         }
         if !(0.0..=0.5).contains(&self.validation_share) {
             return bad("validation_share", "must lie in [0, 0.5]");

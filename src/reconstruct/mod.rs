@@ -728,6 +728,7 @@ fn refraction_over(
         form: settings.residual,
         robust: settings.robust,
         min_cos: settings.min_cos,
+        grazing_cell_footprints: settings.grazing_cell_footprints,
         footprint: settings.footprint,
         bit_weight: settings.weight_bits,
     };

@@ -615,7 +615,8 @@ fn decoded_points_of_grazing_rays_pull_the_true_shape_outward() {
 }
 
 /// The presets' refraction term (smooth normals, direction residual, Cauchy 0.2, two
-/// refractions) with `min_cos`, `footprint` rays per pixel side and the per-bit weight.
+/// refractions, grazing rays kept where the decoded cell is fine) with `min_cos`, `footprint`
+/// rays per pixel side and the per-bit weight.
 fn refraction_settings(
     ior: f64,
     min_cos: f64,
@@ -630,6 +631,10 @@ fn refraction_settings(
         form: glasscan::loss::refraction::ResidualForm::Direction,
         robust: glasscan::loss::Robust::Cauchy(0.2),
         min_cos,
+        grazing_cell_footprints: glasscan::reconstruct::config::Settings::preset(
+            glasscan::reconstruct::config::Preset::Balanced,
+        )
+        .grazing_cell_footprints,
         footprint,
         bit_weight,
     }

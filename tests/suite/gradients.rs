@@ -90,6 +90,7 @@ fn settings(
         form,
         robust,
         min_cos: 0.0,
+        grazing_cell_footprints: 0.0,
         footprint: 1,
         bit_weight: 0.0,
     }
@@ -153,6 +154,7 @@ fn case(
             target,
             weight: 0.7,
             bits: Default::default(),
+            cell_footprints: 1.0,
         },
         rays: vec![(dir, trails[0].prims().to_vec())],
         landing: o + d * ((monitor_z - o.z) / d.z),
@@ -510,6 +512,7 @@ fn near_the_critical_angle_the_gradient_holds_and_beyond_it_the_ray_is_dropped()
         target: Point3::new(0.0, 0.0, -3.0),
         weight: 1.0,
         bits: Default::default(),
+        cell_footprints: 1.0,
     };
     assert!(trails[0].prims().is_empty());
     // The face the ray reflects at, given explicitly.
@@ -554,6 +557,7 @@ fn degenerate_triangles_drop_rays_and_never_reach_a_gradient() {
             target: Point3::new(0.0, 0.0, -5.0),
             weight: 1.0,
             bits: Default::default(),
+            cell_footprints: 1.0,
         };
         let r = pixel_gradient(&state(&mesh, &vn), &s, &view, &px, &[degenerate, 0]);
         assert_eq!(r.err(), Some(DropReason::Grazing), "{normals:?}");
@@ -943,6 +947,7 @@ fn exact_views(surface: &MeshSurface) -> Vec<ViewTargets> {
                         target: world_screen.point(smp.monitor.x, smp.monitor.y),
                         weight: 1.0,
                         bits: Default::default(),
+                        cell_footprints: 1.0,
                     })
                     .collect(),
             }
@@ -993,6 +998,40 @@ fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
             "{normals:?}: |gradient| {gnorm:e} on the truth, {gnorm_grown:e} 0.1 % off"
         );
     }
+}
+
+#[test]
+fn grazing_rays_are_dropped_unless_their_decoded_cell_is_fine() {
+    // Exact correspondences on the true ellipsoid: `min_cos` drops the rays that meet it near
+    // grazing or near the critical angle, except those of pixels whose decoded cell is at most
+    // `grazing_cell_footprints` direct footprints wide; the rays it keeps still fit exactly.
+    let mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
+    let surface = MeshSurface::with_mode(&mesh, NormalModel::Vertex, BuildMode::Refit).unwrap();
+    let with_cells = |cells: f32| {
+        let mut views = exact_views(&surface);
+        for p in views.iter_mut().flat_map(|v| v.pixels.iter_mut()) {
+            p.cell_footprints = cells;
+        }
+        views
+    };
+    let term = |min_cos, grazing_cell_footprints| RefractionSettings {
+        max_refractions: 4,
+        min_cos,
+        grazing_cell_footprints,
+        ..settings(1.5, NormalModel::Vertex, ResidualForm::Screen, Robust::L2)
+    };
+    let count = |cells, s: &RefractionSettings| {
+        let (loss, used, drops, _) = evaluate_views(&surface, &with_cells(cells), s);
+        assert!(loss / used as f64 <= 1e-10, "{loss:e} over {used} rays");
+        (used, drops.grazing + drops.near_critical)
+    };
+    let (all, none_dropped) = count(1.0, &term(0.0, 0.0));
+    let (kept, dropped) = count(1.0, &term(0.3, 0.0));
+    eprintln!("{all} rays; min_cos 0.3 drops {dropped}, keeps {kept}");
+    assert!(dropped > 50 && kept + dropped <= all && none_dropped < dropped / 10);
+    assert_eq!(count(1.0, &term(0.3, 3.0)), (all, none_dropped));
+    assert_eq!(count(3.0, &term(0.3, 3.0)), (all, none_dropped));
+    assert_eq!(count(6.0, &term(0.3, 3.0)), (kept, dropped));
 }
 
 #[test]
@@ -1058,6 +1097,7 @@ fn gradients_are_bitwise_the_same_on_any_number_of_threads() {
                     ),
                 weight: 1.0,
                 bits: Default::default(),
+                cell_footprints: 1.0,
             })
             .collect(),
     };
