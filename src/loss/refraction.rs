@@ -59,8 +59,9 @@ pub struct RefractionSettings {
     pub min_cos: f64,
     /// Pixels whose decoded cell is at most this many direct footprints wide
     /// ([`PixelTarget::cell_footprints`]) keep their rays below `min_cos`: the glass then
-    /// magnified the pixel's footprint little, as a slab does, and a slab's rays land where a
-    /// blurred footprint's centre does. 0: `min_cos` applies to every pixel.
+    /// magnified the pixel's footprint little, as a flat face seen edge-on does, whose rays are
+    /// often all that holds it (they still pull outward, less than a curved rim's). 0:
+    /// `min_cos` applies to every pixel.
     #[serde(default)]
     pub grazing_cell_footprints: f64,
     /// Rays per pixel side, 1..=[`MAX_FOOTPRINT`]: each pixel is modelled by the mean of an n×n
