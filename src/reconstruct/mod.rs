@@ -39,6 +39,7 @@ use crate::trace::path::MeshSurface;
 use crate::trace::refract::IOR_AIR;
 use crate::trace::thickness::thickness_quantile;
 use crate::trace::BuildMode;
+use crate::util::scatter_seed;
 use config::Settings;
 use coverage::Coverage;
 use optim::{Stepper, TailMean};
@@ -694,12 +695,11 @@ impl Terms {
 }
 
 /// The seed of the random choices (views, first pixels) of iteration `it` of the run's stage
-/// `s`. The run's seed is first scattered by an odd multiplier — a bijection of the 64-bit
-/// integers that keeps 0 at 0, so seed 0 draws what it always drew — because with the bare seed
-/// `seed ^ it` two seeds below the iteration count shared their draws in another order (seed
-/// 1's iteration 0 drew seed 0's iteration 1): runs with different seeds were not independent.
+/// `s`: the run's seed scattered ([`scatter_seed`]), because with the bare seed `seed ^ it` two
+/// seeds below the iteration count shared their draws in another order (seed 1's iteration 0
+/// drew seed 0's iteration 1): runs with different seeds were not independent.
 fn iteration_seed(seed: u64, s: usize, it: usize) -> u64 {
-    seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ ((s as u64) << 40) ^ it as u64
+    scatter_seed(seed) ^ ((s as u64) << 40) ^ it as u64
 }
 
 /// The refraction term over `refraction_views` random views of those `split` fits, every

@@ -23,6 +23,7 @@ use super::{write_sensor_image, SimulateOptions};
 use crate::calibrate::board::Board;
 use crate::rig::Camera;
 use crate::scan::Scan;
+use crate::util::scatter_seed;
 
 /// Board images for the camera.
 pub const CAMERA_IMAGES: usize = 60;
@@ -51,18 +52,41 @@ pub struct Setup {
 /// `scan.dir/calibration`; the commands in `setup.json` name the scan's final folder `out`.
 pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) -> Result<()> {
     let cam = &scan.camera;
-    let d = o.camera_distance_mm;
     // Boards whose width with margins (12 squares) is a share of the image width at the axis
     // distance: a large one for the camera (strong perspective when tilted), a smaller one that
     // stays in view on the turntable.
     let board_for = |share: f64| Board {
         cols: 9,
         rows: 6,
-        square_mm: (share * cam.width as f64 * d / cam.fx / 12.0 * 10.0).round() / 10.0,
+        square_mm: (share * cam.width as f64 * o.camera_distance_mm / cam.fx / 12.0 * 10.0).round()
+            / 10.0,
     };
-    let board = board_for(0.6);
+    let (board, small) = (board_for(0.6), board_for(0.5));
     let dir = scan.dir.join("calibration");
-    let mut rng = ChaCha8Rng::seed_from_u64(o.seed ^ 0xca1b);
+    let seed = scatter_seed(o.seed);
+    let poses = camera_board_poses(cam, &board, o.camera_distance_mm, seed ^ 0xca1b)?;
+    render_set(&dir.join("camera"), &poses, &board, cam, o, seed ^ 0x5eed)?;
+    let turned = turntable_board_poses(scan, &small)?;
+    render_set(
+        &dir.join("turntable"),
+        &turned,
+        &small,
+        cam,
+        o,
+        seed ^ 0x7a61,
+    )?;
+    write_setup(&dir, out, &board, &small)
+}
+
+/// [`CAMERA_IMAGES`] random poses (board → camera) of `board` held in front of the camera
+/// about `distance_mm` away, tilted up to 55°, each wholly in view.
+fn camera_board_poses(
+    cam: &Camera,
+    board: &Board,
+    distance_mm: f64,
+    seed: u64,
+) -> Result<Vec<Isometry3<f64>>> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut poses = Vec::new();
     for _ in 0..10_000 {
         if poses.len() == CAMERA_IMAGES {
@@ -73,7 +97,7 @@ pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) ->
             rng.random_range(-55f64..55.0).to_radians(),
             rng.random_range(-15f64..15.0).to_radians(),
         );
-        let z = d * rng.random_range(0.8..1.2);
+        let z = distance_mm * rng.random_range(0.8..1.2);
         let centre = Vector3::new(
             rng.random_range(-0.35..0.35) * cam.width as f64 * z / cam.fx,
             rng.random_range(-0.35..0.35) * cam.height as f64 * z / cam.fy,
@@ -81,18 +105,20 @@ pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) ->
         );
         let half = Vector3::new(board.cols as f64, board.rows as f64, 0.0) * board.square_mm / 2.0;
         let pose = Isometry3::from_parts(Translation3::from(centre - rot * half), rot);
-        if in_view(cam, &pose, &board) {
+        if in_view(cam, &pose, board) {
             poses.push(pose);
         }
     }
     if poses.len() < CAMERA_IMAGES {
         bail!("cannot place the calibration board in the camera's view");
     }
-    render_set(&dir.join("camera"), &poses, &board, cam, o, o.seed ^ 0x5eed)?;
+    Ok(poses)
+}
 
-    // The board standing on the turntable, facing the camera at 0°, 10 mm beside the axis and
-    // 30 mm in front of it.
-    let small = board_for(0.5);
+/// The poses (board → camera) of `small` standing on the turntable, facing the camera at 0°,
+/// 10 mm beside the axis and 30 mm in front of it, at each of [`TURNTABLE_ANGLES`]; an error
+/// when it leaves the camera's view.
+fn turntable_board_poses(scan: &Scan, small: &Board) -> Result<Vec<Isometry3<f64>>> {
     let s = small.square_mm;
     let upright = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
     let in_world = Isometry3::from_parts(
@@ -113,21 +139,18 @@ pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) ->
             base * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), a.to_radians()) * in_world
         })
         .collect();
-    if let Some(k) = turned.iter().position(|p| !in_view(cam, p, &small)) {
+    if let Some(k) = turned.iter().position(|p| !in_view(&scan.camera, p, small)) {
         bail!(
             "the turntable board leaves the camera's view at {}° (raise --camera-distance-mm)",
             TURNTABLE_ANGLES[k]
         );
     }
-    render_set(
-        &dir.join("turntable"),
-        &turned,
-        &small,
-        cam,
-        o,
-        o.seed ^ 0x7a61,
-    )?;
+    Ok(turned)
+}
 
+/// Writes `dir/setup.json`: the boards and the commands that calibrate the scan `out` from the
+/// images.
+fn write_setup(dir: &Path, out: &Path, board: &Board, small: &Board) -> Result<()> {
     let board_arg = format!("{}x{}", board.cols, board.rows);
     let scan_dir = out.display();
     let angles: Vec<String> = TURNTABLE_ANGLES.iter().map(|a| a.to_string()).collect();

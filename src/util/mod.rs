@@ -1,4 +1,5 @@
-//! Small helpers shared by every stage: atomic file, folder and image output, a median.
+//! Small helpers shared by every stage: atomic file, folder and image output, a median, the
+//! scattering of a user's seed.
 
 pub mod atomic;
 pub mod budget;
@@ -14,4 +15,12 @@ pub fn median(mut v: Vec<f64>) -> f64 {
     }
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
+}
+
+/// A user's `--seed` scattered over the 64-bit integers before small stream numbers (a view, a
+/// stage, an iteration) are mixed into it: multiplied by an odd constant, a bijection that keeps
+/// 0 at 0, so seed 0 draws what it always drew. Mixed in bare, seeds s and s + 1 would share
+/// their streams shifted by one (view k + 1 of one, view k of the other).
+pub fn scatter_seed(seed: u64) -> u64 {
+    seed.wrapping_mul(0x9e37_79b9_7f4a_7c15)
 }
