@@ -201,9 +201,30 @@ fn record(views: &BTreeMap<usize, ViewSums>, settings: &Settings) -> ValidationR
     }
 }
 
-/// How many standard errors (of the per-view differences) a later stage's gain in held-out
-/// refraction fit must exceed to replace an earlier stage as the result.
-pub const SIGNIFICANT_T: f64 = 3.0;
+/// Student's t one-sided 5 % critical values for 1–30 degrees of freedom.
+const T_CRITICAL_5: [f64; 30] = [
+    6.314, 2.920, 2.353, 2.132, 2.015, 1.943, 1.895, 1.860, 1.833, 1.812, 1.796, 1.782, 1.771,
+    1.761, 1.753, 1.746, 1.740, 1.734, 1.729, 1.725, 1.721, 1.717, 1.714, 1.711, 1.708, 1.706,
+    1.703, 1.701, 1.699, 1.697,
+];
+
+/// How many standard errors of the per-view differences a later stage's gain over `views`
+/// held-out views must exceed to replace the chosen stage: the t distribution's one-sided 5 %
+/// quantile with `views − 1` degrees of freedom (1.94 for 7 views, 6.31 for 2;
+/// beyond 30 by the Cornish–Fisher expansion about the normal's 1.645); infinite for fewer than
+/// two views, which cannot be tested.
+pub fn significant_t(views: usize) -> f64 {
+    let df = views.saturating_sub(1);
+    if df == 0 {
+        return f64::INFINITY;
+    }
+    if let Some(&t) = T_CRITICAL_5.get(df - 1) {
+        return t;
+    }
+    let (z, n) = (1.644_853_626_951_472_f64, df as f64);
+    z + (z.powi(3) + z) / (4.0 * n)
+        + (5.0 * z.powi(5) + 16.0 * z.powi(3) + 3.0 * z) / (96.0 * n * n)
+}
 
 /// The stage (index) among the first `upto` that fits the held-out views best, from stage
 /// `first` on (the warm-up's stages carve at the coarsest edge length and are candidates only
@@ -237,8 +258,8 @@ fn lowest_total(done: &[super::StageReport], from: usize) -> Option<usize> {
 /// Whether `later` fits the same held-out views better than `earlier` beyond the noise between
 /// views, by paired comparisons (the per-view differences' mean over their standard error) of
 /// two measures: the refraction term and the pixels where the mesh's outline and the mask
-/// disagree. One must be lower by more than [`SIGNIFICANT_T`] standard errors and the other not
-/// higher by as much. The pooled total can prefer a coarser stage because the held-out masks'
+/// disagree. One must be lower by more than [`significant_t`] standard errors (a one-sided test
+/// at 5 %) and the other not higher by as much. The pooled total can prefer a coarser stage because the held-out masks'
 /// outlines, not the shape, dominate its silhouette term, and that term's mean over contour
 /// edges changes with their number and zigzag at every edge length (docs/decisions.md): a finer
 /// stage must earn its place view by view. Where a record has no outline counts (an older
@@ -260,7 +281,8 @@ pub fn fits_significantly_better(earlier: &ValidationRecord, later: &ValidationR
     } else {
         paired_t(&gain(|v| v.silhouette))
     };
-    let better = |a: f64, b: f64| a > SIGNIFICANT_T && b > -SIGNIFICANT_T;
+    let t = significant_t(e.len());
+    let better = |a: f64, b: f64| a > t && b > -t;
     better(refraction, outline) || better(outline, refraction)
 }
 
@@ -395,6 +417,42 @@ mod tests {
         assert_eq!(paired_t(&[0.0, 0.0]), 0.0);
         assert_eq!(paired_t(&[1.0]), 0.0);
         assert_eq!(paired_t(&[1.0, f64::NAN, 2.0]), 0.0);
+    }
+
+    #[test]
+    fn the_threshold_is_the_t_distributions_one_sided_5_percent_quantile() {
+        assert_eq!(significant_t(7), 1.943);
+        assert_eq!(significant_t(2), 6.314);
+        assert_eq!(significant_t(1), f64::INFINITY);
+        assert_eq!(significant_t(0), f64::INFINITY);
+        // Beyond the table the expansion continues it and falls towards the normal's 1.645.
+        assert!((significant_t(32) - 1.696).abs() < 1e-3);
+        assert!((significant_t(61) - 1.671).abs() < 1e-3);
+        assert!((significant_t(100_000) - 1.645).abs() < 1e-3);
+        let t: Vec<f64> = (2..200).map(significant_t).collect();
+        assert!(t.windows(2).all(|w| w[1] < w[0]));
+    }
+
+    #[test]
+    fn a_gain_of_about_two_and_a_half_standard_errors_counts_over_7_views_not_over_3() {
+        // Refraction misfit lower in every view by 0.001 ± 0.001: t = 2.6 over 7 views.
+        let base_r = [0.020, 0.030, 0.025, 0.018, 0.022, 0.028, 0.021];
+        let gain = [0.002, 0.0, 0.002, 0.0, 0.002, 0.0, 0.001];
+        let earlier = seven_views(base_r, [0.04; 7]);
+        let later = seven_views(std::array::from_fn(|v| base_r[v] - gain[v]), [0.04; 7]);
+        let t = paired_t(&gain);
+        assert!(t > significant_t(7) && t < 3.0, "t = {t}");
+        assert!(fits_significantly_better(&earlier, &later));
+        // The same three views' gains are not enough (t = 2 against 2.92).
+        let first3 = |r: &ValidationRecord| ValidationRecord {
+            per_view: r.per_view[..3].to_vec(),
+            ..r.clone()
+        };
+        assert!(paired_t(&gain[..3]) < significant_t(3));
+        assert!(!fits_significantly_better(
+            &first3(&earlier),
+            &first3(&later)
+        ));
     }
 
     #[test]
