@@ -4,11 +4,11 @@
 //! Each iteration: split every edge longer than 4/3·h at its midpoint; collapse every edge shorter
 //! than 4/5·h whose collapse keeps the mesh manifold (link condition), flips no triangle and
 //! creates no edge longer than 4/3·h; flip edges where that brings the four vertices' valences
-//! closer to 6; then a few passes of tangential relaxation (each vertex moves, within the plane
-//! normal to the mesh's own vertex normal, to the area-weighted centroid of its incident
-//! triangles' centroids, as pmp-library and CGAL do) and a projection onto the input surface
-//! (closest point through Embree's BVH on the input). h is the target edge length in mm: one
-//! value (uniform), or a per-vertex field from the input's curvature (adaptive).
+//! closer to 6; then a few passes of tangential relaxation (each vertex moves, within its tangent
+//! plane, to the area-weighted centroid of its incident triangles' centroids, as CGAL does) and a
+//! projection onto the input surface (closest point through Embree's BVH on the input; the normal
+//! there is interpolated from the input's vertex normals and defines the next tangent plane). h is the target edge length in mm:
+//! one value (uniform), or a per-vertex field from the input's curvature (adaptive).
 //! The output is closed, manifold and outward-oriented like the input, with the same genus.
 
 use nalgebra::{Point3, Vector3};
@@ -156,10 +156,12 @@ fn check_settings(input: &TriMesh, opts: &RemeshOptions) -> Result<(), RemeshErr
     Ok(())
 }
 
-/// The input surface: a BVH for closest points and target edge lengths to interpolate there.
+/// The input surface: a BVH for closest points, vertex normals and target edge lengths to
+/// interpolate there.
 struct Reference<'a> {
     mesh: &'a TriMesh,
     scene: Scene,
+    normals: Vec<Vector3<f64>>,
     /// Target edge length at each input vertex, mm.
     sizing: Vec<f64>,
     /// The largest target edge length, mm.
@@ -173,13 +175,15 @@ impl<'a> Reference<'a> {
         opts: &RemeshOptions,
     ) -> Result<Self, TraceError> {
         let scene = Scene::new(device, mesh, BuildMode::Static)?;
+        let normals = mesh.vertex_normals();
         let sizing = match opts.adaptive {
             None => vec![opts.edge_mm; mesh.positions.len()],
-            Some(a) => curvature_sizing(mesh, &mesh.vertex_normals(), opts.edge_mm, a),
+            Some(a) => curvature_sizing(mesh, &normals, opts.edge_mm, a),
         };
         Ok(Self {
             mesh,
             scene,
+            normals,
             sizing,
             max_target: opts.edge_mm,
         })
@@ -243,10 +247,11 @@ fn barycentric(q: &Point3<f64>, t: &[Point3<f64>; 3]) -> [f64; 3] {
     [1.0 - v - w, v, w]
 }
 
-/// The mesh being remeshed, with per-vertex target edge lengths and feature counts, and per-edge
-/// feature flags.
+/// The mesh being remeshed, with per-vertex normals, target edge lengths and feature counts, and
+/// per-edge feature flags.
 struct Remesher<'r, 'a> {
     mesh: HalfEdgeMesh,
+    normal: Vec<Vector3<f64>>,
     target: Vec<f64>,
     /// Feature edges at each vertex: 0 free, 2 on a feature line, anything else a fixed corner.
     crease: Vec<u8>,
@@ -273,6 +278,7 @@ impl<'r, 'a> Remesher<'r, 'a> {
             }
         };
         let mut r = Self {
+            normal: reference.normals.clone(),
             target: reference.sizing.clone(),
             crease: Vec::new(),
             feature,
@@ -325,6 +331,9 @@ impl<'r, 'a> Remesher<'r, 'a> {
                         self.feature.resize(self.mesh.edge_slots(), false);
                         self.feature[half as usize] = on_feature;
                         self.crease.push(if on_feature { 2 } else { 0 });
+                        let n = self.normal[a as usize] + self.normal[b as usize];
+                        self.normal
+                            .push(n.try_normalize(0.0).unwrap_or(self.normal[a as usize]));
                         self.target.push(self.edge_target(a, b));
                         split_any = true;
                     }
@@ -519,13 +528,10 @@ impl<'r, 'a> Remesher<'r, 'a> {
     }
 
     /// One pass of tangential relaxation towards the area-weighted centroid of the incident
-    /// triangles' centroids, within the plane normal to the mesh's own vertex normal (as
-    /// pmp-library does). The input's normal at the vertex's closest point would hold the plane
-    /// still while the mesh bends: where a part of the input is thinner than the edge length (an
-    /// ear, a flap), the vertices at its rim then slide inwards every pass and the part is pared
-    /// away — 20 mm of a pig's ear in 10 iterations at 3.9 mm edges (docs/decisions.md).
+    /// triangles' centroids.
     fn relax(&mut self) {
         let m = &self.mesh;
+        let normal = &self.normal;
         let moved: Vec<Point3<f64>> = (0..m.vertex_slots() as u32)
             .into_par_iter()
             .map(|v| {
@@ -547,7 +553,7 @@ impl<'r, 'a> Remesher<'r, 'a> {
                 if weight.is_nan() || weight <= 0.0 {
                     return p;
                 }
-                let n = m.vertex_normal(v);
+                let n = normal[v as usize];
                 let u = sum / weight - p.coords;
                 p + (u - n * n.dot(&u))
             })
@@ -574,7 +580,7 @@ impl<'r, 'a> Remesher<'r, 'a> {
     }
 
     /// Moves every vertex but the corners to its closest point on the input; takes the input's
-    /// interpolated target length there.
+    /// interpolated normal and target length there.
     fn project(&mut self) -> Result<(), TraceError> {
         let closest = self
             .reference
@@ -586,6 +592,12 @@ impl<'r, 'a> Remesher<'r, 'a> {
                 continue;
             }
             self.mesh.pos[v] = c.point;
+            let n: Vector3<f64> =
+                self.reference
+                    .interpolate(&self.reference.normals, c.prim, &c.point);
+            if let Some(n) = n.try_normalize(0.0) {
+                self.normal[v] = n;
+            }
             self.target[v] = self
                 .reference
                 .interpolate(&self.reference.sizing, c.prim, &c.point);
@@ -596,6 +608,7 @@ impl<'r, 'a> Remesher<'r, 'a> {
     /// Drops removed elements (vertex ids change; per-vertex data follow).
     fn compact(&mut self) {
         let map = self.mesh.garbage_collect();
+        self.normal = map.vertex_data(&self.normal);
         self.target = map.vertex_data(&self.target);
         self.crease = map.vertex_data(&self.crease);
         self.feature = map.edge_data(&self.feature);
