@@ -210,9 +210,9 @@ const T_CRITICAL_5: [f64; 30] = [
 
 /// How many standard errors of the per-view differences a later stage's gain over `views`
 /// held-out views must exceed to replace the chosen stage: the t distribution's one-sided 5 %
-/// quantile with `views − 1` degrees of freedom (1.94 for 7 views, 6.31 for 2;
-/// beyond 30 by the Cornish–Fisher expansion about the normal's 1.645); infinite for fewer than
-/// two views, which cannot be tested.
+/// quantile with `views − 1` degrees of freedom (1.94 for 7 views, 6.31 for 2; beyond 30 by the
+/// Cornish–Fisher expansion about the normal's 1.645); infinite for fewer than two views, which
+/// cannot be tested.
 pub fn significant_t(views: usize) -> f64 {
     let df = views.saturating_sub(1);
     if df == 0 {
@@ -259,10 +259,10 @@ fn lowest_total(done: &[super::StageReport], from: usize) -> Option<usize> {
 /// views, by paired comparisons (the per-view differences' mean over their standard error) of
 /// two measures: the refraction term and the pixels where the mesh's outline and the mask
 /// disagree. One must be lower by more than [`significant_t`] standard errors (a one-sided test
-/// at 5 %) and the other not higher by as much. The pooled total can prefer a coarser stage because the held-out masks'
-/// outlines, not the shape, dominate its silhouette term, and that term's mean over contour
-/// edges changes with their number and zigzag at every edge length (docs/decisions.md): a finer
-/// stage must earn its place view by view. Where a record has no outline counts (an older
+/// at 5 %) and the other not higher by as much. The pooled total can prefer a coarser stage
+/// because the held-out masks' outlines, not the shape, dominate its silhouette term, and that
+/// term's mean over contour edges changes with their number and zigzag at every edge length
+/// (docs/decisions.md): a finer stage must earn its place view by view. Where a record has no outline counts (an older
 /// checkpoint), the silhouette term stands in for them. False without per-view figures for the
 /// same views.
 pub fn fits_significantly_better(earlier: &ValidationRecord, later: &ValidationRecord) -> bool {
@@ -435,7 +435,7 @@ mod tests {
 
     #[test]
     fn a_gain_of_about_two_and_a_half_standard_errors_counts_over_7_views_not_over_3() {
-        // Refraction misfit lower in every view by 0.001 ± 0.001: t = 2.6 over 7 views.
+        // Refraction misfit lower by 0–0.002 a view (mean 0.0013): t = 2.65 over 7 views.
         let base_r = [0.020, 0.030, 0.025, 0.018, 0.022, 0.028, 0.021];
         let gain = [0.002, 0.0, 0.002, 0.0, 0.002, 0.0, 0.001];
         let earlier = seven_views(base_r, [0.04; 7]);
