@@ -776,8 +776,8 @@ mod tests {
         // Seed 0 keeps the noise the bench's scans were made with.
         assert_eq!(view_seed(0, 5), 5);
         assert_eq!(background_seed(0), 0xb6);
-        // No two views of seeds 0–15 (360 views each) share a noise seed, nor a view the
-        // background's of another seed (bare, seed 1's view k was seed 0's view k + 1).
+        // No two views of seeds 0–15 (360 views each) share a noise seed, and no other seed's
+        // background meets one of them (bare, seed 1's view k was seed 0's view k + 1).
         let mut seen = std::collections::HashSet::new();
         for seed in 0..16 {
             for k in 0..360 {
