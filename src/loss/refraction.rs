@@ -148,6 +148,15 @@ pub struct ViewTargets {
 }
 
 impl ViewTargets {
+    /// The width of one camera pixel (mm) at the depth of `p` (world frame, mm) along the
+    /// optical axis: the depth over the focal length, the mean of the two pixel axes; `None`
+    /// without pixel axes or with `p` not in front of the camera.
+    pub fn pixel_mm_at(&self, p: &Point3<f64>) -> Option<f64> {
+        let a = self.pixel_axes?;
+        let depth = (p - self.eye).dot(&a.forward);
+        (depth > 0.0).then(|| depth * 0.5 * (a.right.norm() + a.down.norm()))
+    }
+
     /// The same view without pixels.
     pub fn clone_empty(&self) -> Self {
         Self {
@@ -627,5 +636,39 @@ impl Drops {
             DropReason::NearCritical => self.near_critical += 1,
             DropReason::NonFinite => self.non_finite += 1,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pixel_spans_its_depth_over_the_focal_length() {
+        // A camera 500 mm from the origin looking along −z, fx = 1000 px, fy = 800 px.
+        let view = ViewTargets {
+            view: 0,
+            eye: Point3::new(0.0, 0.0, 500.0),
+            monitor_point: Point3::new(0.0, 0.0, -300.0),
+            monitor_normal: V3::z(),
+            monitor_axes: None,
+            pixel_axes: Some(PixelAxes {
+                right: V3::new(1e-3, 0.0, 0.0),
+                down: V3::new(0.0, -1.25e-3, 0.0),
+                forward: -V3::z(),
+            }),
+            pixels: Vec::new(),
+        };
+        // Depth along the optical axis, not the distance: an off-axis point at the same depth.
+        for p in [Point3::origin(), Point3::new(80.0, -40.0, 0.0)] {
+            let mm = view.pixel_mm_at(&p).unwrap();
+            assert!((mm - 500.0 * 1.125e-3).abs() < 1e-12, "{mm}");
+        }
+        assert_eq!(view.pixel_mm_at(&Point3::new(0.0, 0.0, 600.0)), None);
+        let blind = ViewTargets {
+            pixel_axes: None,
+            ..view.clone_empty()
+        };
+        assert_eq!(blind.pixel_mm_at(&Point3::origin()), None);
     }
 }

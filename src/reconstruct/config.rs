@@ -112,7 +112,8 @@ pub struct Settings {
     #[serde(default)]
     pub grazing_cell_footprints: f64,
     /// Refraction rays per pixel side: a pixel is modelled by the mean residual of an n×n grid
-    /// of rays over its area (1: its centre ray; the cost grows as n²).
+    /// of rays over its area (1: its centre ray; the cost grows as n²). 0 ([`AUTO_FOOTPRINT`]):
+    /// chosen by the run from the camera pixel at the object ([`Settings::resolve_footprint`]).
     #[serde(default = "one")]
     pub footprint: u32,
     /// Weight of the per-bit term: per pixel, the measured contrasts of the Gray bits around its
@@ -178,6 +179,9 @@ impl Optimizer {
         self
     }
 }
+
+/// `footprint = 0`: rays per pixel side chosen by the run ([`Settings::resolve_footprint`]).
+pub const AUTO_FOOTPRINT: u32 = 0;
 
 fn one() -> u32 {
     1
@@ -306,6 +310,9 @@ impl Settings {
                 refraction_views: 4,
                 silhouette_views: 8,
                 remesh_iterations: 10,
+                // Rays a camera pixel's width apart at the object about as far as its finest
+                // edge: 2×2 where a pixel spans 1.5 finest edges or more (docs/decisions.md).
+                footprint: AUTO_FOOTPRINT,
                 // Its stages finer than about `balanced`'s second (1/155 of the diagonal) smooth
                 // as far in millimetres as that one (docs/decisions.md).
                 smoothing_edge: 0.0065,
@@ -444,10 +451,12 @@ impl Settings {
         if !(self.robust_anneal >= 1.0 && self.robust_anneal <= 1e3) {
             return bad("robust_anneal", "must lie in [1, 1000]");
         }
-        if !(1..=MAX_FOOTPRINT).contains(&self.footprint) {
+        if self.footprint > MAX_FOOTPRINT {
             return bad(
                 "footprint",
-                &format!("rays per pixel side must lie in 1..={MAX_FOOTPRINT}"),
+                &format!(
+                    "rays per pixel side must lie in 1..={MAX_FOOTPRINT} (0: chosen by the run)"
+                ),
             );
         }
         match self.robust {
@@ -515,6 +524,38 @@ impl Settings {
             };
             (stage, k)
         }
+    }
+
+    /// Rays per pixel side for a run whose decoded points measure whole camera pixels that
+    /// span `pixel_mm` at the object (mm; `None`: the points are exact centre-ray
+    /// correspondences, as `simulate --decoded-only` writes and imports carry) and whose start
+    /// mesh's bounding-box diagonal is `diagonal_mm`: `footprint` when set, else
+    /// ([`AUTO_FOOTPRINT`]) the count that spaces the rays across a pixel about one last-stage
+    /// edge apart, round(pixel / edge) within 1..=[`MAX_FOOTPRINT`] (1 for centre-ray points).
+    pub fn resolve_footprint(&self, pixel_mm: Option<f64>, diagonal_mm: f64) -> u32 {
+        if self.footprint != AUTO_FOOTPRINT {
+            return self.footprint;
+        }
+        let per_edge =
+            pixel_mm.map_or(f64::NAN, |p| p / self.edge_mm(self.stages - 1, diagonal_mm));
+        if per_edge.is_finite() {
+            (per_edge.round() as u32).clamp(1, MAX_FOOTPRINT)
+        } else {
+            1
+        }
+    }
+
+    /// Whether a run committed with `committed` (its footprint resolved) continues under these
+    /// settings: equal, but for a footprint these leave to the run.
+    pub fn continues(&self, committed: &Settings) -> bool {
+        let footprint = match self.footprint {
+            AUTO_FOOTPRINT => committed.footprint,
+            n => n,
+        };
+        Settings {
+            footprint,
+            ..self.clone()
+        } == *committed
     }
 
     /// Target edge length of stage `s` of this schedule (mm) for an initial bounding-box
@@ -601,5 +642,43 @@ mod tests {
             .unwrap()
             .check()
             .is_err());
+    }
+
+    #[test]
+    fn accurate_models_a_pixel_by_rays_about_one_last_edge_apart_at_the_object() {
+        let auto = Settings::preset(Preset::Accurate);
+        assert_eq!(auto.footprint, AUTO_FOOTPRINT);
+        // 350 mm of diagonal: the last stage's edges are 1 mm.
+        let n = |pixel_mm: f64| auto.resolve_footprint(Some(pixel_mm), 350.0);
+        assert_eq!(
+            [n(0.3), n(1.0), n(1.49), n(1.51), n(2.2), n(3.0), n(9.0)],
+            [1, 1, 1, 2, 2, 3, 4]
+        );
+        assert_eq!(n(f64::NAN), 1);
+        // Exact centre-ray correspondences are the centre ray's, at any pixel size.
+        assert_eq!(auto.resolve_footprint(None, 350.0), 1);
+        // A footprint the settings set is kept; the other presets model the centre ray.
+        let two = auto.clone().with_overrides("footprint = 2\n").unwrap();
+        assert_eq!(two.resolve_footprint(Some(0.1), 350.0), 2);
+        assert_eq!(
+            Settings::preset(Preset::Balanced).resolve_footprint(Some(5.0), 350.0),
+            1
+        );
+        assert!(auto
+            .clone()
+            .with_overrides("footprint = 5\n")
+            .unwrap()
+            .check()
+            .is_err());
+        // A run committed with the resolved count continues under the preset, not under another
+        // count or other settings.
+        let committed = Settings {
+            footprint: 3,
+            ..auto.clone()
+        };
+        assert!(auto.continues(&committed));
+        assert!(!two.continues(&committed));
+        let other = auto.with_overrides("iterations = 10\n").unwrap();
+        assert!(!other.continues(&committed));
     }
 }

@@ -216,7 +216,7 @@ pub fn run(
     settings.check().map_err(anyhow::Error::msg)?;
     let (mut ck, mut mesh) = match existing {
         Existing::Run(ck) => continue_run(*ck, settings, out)?,
-        Existing::Nothing => begin_run(inputs, start, settings, out)?,
+        Existing::Nothing => begin_run(inputs, start, settings, out, progress)?,
     };
     let stages = settings.total_stages();
     let split = Split::new(inputs, settings.validation_share);
@@ -248,12 +248,13 @@ pub fn run(
 }
 
 /// The start mesh of a fresh run, written to `out` and committed as a checkpoint with no stage
-/// done.
+/// done, with the settings' footprint resolved.
 fn begin_run(
     inputs: &Inputs,
     start: Start,
     settings: &Settings,
     out: &Path,
+    progress: &dyn Progress,
 ) -> Result<(Checkpoint, TriMesh)> {
     let (mesh, name) = match start {
         Start::Hull(o) => {
@@ -265,7 +266,7 @@ fn begin_run(
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     write_mesh(&out.join(name), &mesh)?;
     let ck = Checkpoint {
-        settings: settings.clone(),
+        settings: resolve_footprint(inputs, &mesh, settings, progress),
         diagonal_mm: mesh.bbox_diagonal(),
         thin_part_mm: thickness_quantile(&mesh, THIN_SHARE)?,
         start_mesh: name.into(),
@@ -279,9 +280,48 @@ fn begin_run(
     Ok((ck, mesh))
 }
 
+/// `settings` with their footprint resolved for the camera pixel at the centre of the start
+/// `mesh` (the median over the views), when the decoded points measure whole pixels: decoded
+/// from captures, they carry measured Gray bits; exact correspondences do not. A note says what
+/// the run chose when it chose.
+fn resolve_footprint(
+    inputs: &Inputs,
+    mesh: &TriMesh,
+    settings: &Settings,
+    progress: &dyn Progress,
+) -> Settings {
+    let centre = mesh
+        .bbox()
+        .map_or(Point3::origin(), |(lo, hi)| nalgebra::center(&lo, &hi));
+    let pixels = inputs.targets.iter().filter_map(|t| t.pixel_mm_at(&centre));
+    let pixel_mm = crate::util::median(pixels.collect());
+    let measured = inputs
+        .targets
+        .iter()
+        .flat_map(|t| &t.pixels)
+        .any(|p| p.bits.any());
+    let diagonal = mesh.bbox_diagonal();
+    let footprint = settings.resolve_footprint(measured.then_some(pixel_mm), diagonal);
+    if settings.footprint == config::AUTO_FOOTPRINT {
+        let why = if measured {
+            ""
+        } else {
+            "; the decoded points are exact centre-ray correspondences (no measured Gray bits)"
+        };
+        progress.note(&format!(
+            "footprint: {footprint}×{footprint} rays per pixel (a camera pixel spans {pixel_mm:.2} mm at the object, the last stage's edges {:.2} mm{why})",
+            settings.edge_mm(settings.stages - 1, diagonal)
+        ));
+    }
+    Settings {
+        footprint,
+        ..settings.clone()
+    }
+}
+
 /// The committed state of the run in `out`, checked against `settings`.
 fn continue_run(ck: Checkpoint, settings: &Settings, out: &Path) -> Result<(Checkpoint, TriMesh)> {
-    if ck.settings != *settings {
+    if !settings.continues(&ck.settings) {
         bail!(
             "--resume: the settings differ from the run in {} (its settings are in checkpoint.json)",
             out.display()
