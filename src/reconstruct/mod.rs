@@ -1029,4 +1029,81 @@ mod tests {
             }
         }
     }
+
+    /// Keeps the notes of a run.
+    #[derive(Default)]
+    struct Notes(std::sync::Mutex<Vec<String>>);
+
+    impl Progress for Notes {
+        fn stage_start(&self, _: usize, _: usize, _: f64, _: usize, _: usize) {}
+        fn iteration(&self, _: &IterationRecord) {}
+        fn stage_end(&self, _: &StageReport) {}
+        fn note(&self, text: &str) {
+            self.0.lock().unwrap().push(text.to_string());
+        }
+    }
+
+    #[test]
+    fn a_run_resolves_its_footprint_from_the_pixel_at_the_start_mesh_and_the_measured_bits() {
+        use crate::loss::bits::{BitContrast, PixelBits};
+        use crate::loss::refraction::{PixelAxes, PixelTarget};
+        // A sphere of radius 10 mm: diagonal 20·√3 mm, `accurate`'s last edge 1/350 of it
+        // (0.099 mm); a camera 100 mm away with 500 px focal length: 0.2 mm pixels, 2.02 edges.
+        let mesh = crate::mesh::shapes::icosphere(10.0, 2);
+        let inputs = |bits: PixelBits| Inputs {
+            ior: 1.5,
+            targets: vec![ViewTargets {
+                view: 0,
+                eye: Point3::new(0.0, 0.0, 100.0),
+                monitor_point: Point3::new(0.0, 0.0, -100.0),
+                monitor_normal: V3::z(),
+                monitor_axes: None,
+                pixel_axes: Some(PixelAxes {
+                    right: V3::new(2e-3, 0.0, 0.0),
+                    down: V3::new(0.0, -2e-3, 0.0),
+                    forward: -V3::z(),
+                }),
+                pixels: vec![PixelTarget {
+                    dir: -V3::z(),
+                    target: Point3::new(0.0, 0.0, -100.0),
+                    weight: 1.0,
+                    bits,
+                    cell_footprints: 1.0,
+                }],
+            }],
+            silhouettes: Vec::new(),
+        };
+        let measured = PixelBits {
+            u: [
+                Some(BitContrast {
+                    bit: 3,
+                    contrast: 0.5,
+                }),
+                None,
+            ],
+            ..PixelBits::default()
+        };
+        let accurate = Settings::preset(Preset::Accurate);
+        let notes = Notes::default();
+        let resolved = resolve_footprint(&inputs(measured), &mesh, &accurate, &notes);
+        assert_eq!(resolved.footprint, 2);
+        assert!(accurate.continues(&resolved));
+        // Exact correspondences (no measured bits) keep the centre ray.
+        let exact = resolve_footprint(&inputs(PixelBits::default()), &mesh, &accurate, &notes);
+        assert_eq!(exact.footprint, 1);
+        let notes = notes.0.into_inner().unwrap();
+        assert!(
+            notes[0].starts_with("footprint: 2×2") && notes[0].contains("0.20 mm"),
+            "{notes:?}"
+        );
+        assert!(notes[1].contains("centre-ray"), "{notes:?}");
+        // A preset that sets its footprint keeps it, without a note.
+        let quiet = Notes::default();
+        let balanced = Settings::preset(Preset::Balanced);
+        assert_eq!(
+            resolve_footprint(&inputs(measured), &mesh, &balanced, &quiet),
+            balanced
+        );
+        assert!(quiet.0.into_inner().unwrap().is_empty());
+    }
 }
