@@ -639,26 +639,32 @@ impl Drops {
     }
 }
 
+/// A view from a camera on the +z axis `distance` mm from the origin, looking along −z, with
+/// focal lengths `fx`, `fy` (px), a monitor plane 300 mm behind the origin and no pixels.
+#[cfg(test)]
+pub(crate) fn view_down_z(distance: f64, (fx, fy): (f64, f64)) -> ViewTargets {
+    ViewTargets {
+        view: 0,
+        eye: Point3::new(0.0, 0.0, distance),
+        monitor_point: Point3::new(0.0, 0.0, -300.0),
+        monitor_normal: V3::z(),
+        monitor_axes: None,
+        pixel_axes: Some(PixelAxes {
+            right: V3::new(1.0 / fx, 0.0, 0.0),
+            down: V3::new(0.0, -1.0 / fy, 0.0),
+            forward: -V3::z(),
+        }),
+        pixels: Vec::new(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn a_pixel_spans_its_depth_over_the_focal_length() {
-        // A camera 500 mm from the origin looking along −z, fx = 1000 px, fy = 800 px.
-        let view = ViewTargets {
-            view: 0,
-            eye: Point3::new(0.0, 0.0, 500.0),
-            monitor_point: Point3::new(0.0, 0.0, -300.0),
-            monitor_normal: V3::z(),
-            monitor_axes: None,
-            pixel_axes: Some(PixelAxes {
-                right: V3::new(1e-3, 0.0, 0.0),
-                down: V3::new(0.0, -1.25e-3, 0.0),
-                forward: -V3::z(),
-            }),
-            pixels: Vec::new(),
-        };
+        let view = view_down_z(500.0, (1000.0, 800.0));
         // Depth along the optical axis, not the distance: an off-axis point at the same depth.
         for p in [Point3::origin(), Point3::new(80.0, -40.0, 0.0)] {
             let mm = view.pixel_mm_at(&p).unwrap();

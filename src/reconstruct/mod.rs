@@ -1046,30 +1046,21 @@ mod tests {
     #[test]
     fn a_run_resolves_its_footprint_from_the_pixel_at_the_start_mesh_and_the_measured_bits() {
         use crate::loss::bits::{BitContrast, PixelBits};
-        use crate::loss::refraction::{PixelAxes, PixelTarget};
+        use crate::loss::refraction::{view_down_z, PixelTarget};
         // A sphere of radius 10 mm: diagonal 20·√3 mm, `accurate`'s last edge 1/350 of it
         // (0.099 mm); a camera 100 mm away with 500 px focal length: 0.2 mm pixels, 2.02 edges.
         let mesh = crate::mesh::shapes::icosphere(10.0, 2);
         let inputs = |bits: PixelBits| Inputs {
             ior: 1.5,
             targets: vec![ViewTargets {
-                view: 0,
-                eye: Point3::new(0.0, 0.0, 100.0),
-                monitor_point: Point3::new(0.0, 0.0, -100.0),
-                monitor_normal: V3::z(),
-                monitor_axes: None,
-                pixel_axes: Some(PixelAxes {
-                    right: V3::new(2e-3, 0.0, 0.0),
-                    down: V3::new(0.0, -2e-3, 0.0),
-                    forward: -V3::z(),
-                }),
                 pixels: vec![PixelTarget {
                     dir: -V3::z(),
-                    target: Point3::new(0.0, 0.0, -100.0),
+                    target: Point3::new(0.0, 0.0, -300.0),
                     weight: 1.0,
                     bits,
                     cell_footprints: 1.0,
                 }],
+                ..view_down_z(100.0, (500.0, 500.0))
             }],
             silhouettes: Vec::new(),
         };
