@@ -157,6 +157,12 @@ impl ViewTargets {
         (depth > 0.0).then(|| depth * 0.5 * (a.right.norm() + a.down.norm()))
     }
 
+    /// Whether any pixel carries measured Gray bits (decoded from captures by a glasscan that
+    /// stores the contrasts; exact correspondences and imported rays carry none).
+    pub fn has_measured_bits(&self) -> bool {
+        self.pixels.iter().any(|p| p.bits.any())
+    }
+
     /// The same view without pixels.
     pub fn clone_empty(&self) -> Self {
         Self {

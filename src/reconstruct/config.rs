@@ -536,8 +536,7 @@ impl Settings {
         if self.footprint != AUTO_FOOTPRINT {
             return self.footprint;
         }
-        let per_edge =
-            pixel_mm.map_or(f64::NAN, |p| p / self.edge_mm(self.stages - 1, diagonal_mm));
+        let per_edge = pixel_mm.map_or(f64::NAN, |p| p / self.last_edge_mm(diagonal_mm));
         if per_edge.is_finite() {
             (per_edge.round() as u32).clamp(1, MAX_FOOTPRINT)
         } else {
@@ -562,6 +561,12 @@ impl Settings {
     /// diagonal `diag`.
     pub fn edge_mm(&self, s: usize, diag: f64) -> f64 {
         diag * self.edge_share(s)
+    }
+
+    /// Target edge length of this schedule's last stage (mm) for an initial bounding-box
+    /// diagonal `diag`.
+    pub fn last_edge_mm(&self, diag: f64) -> f64 {
+        self.edge_mm(self.stages - 1, diag)
     }
 
     /// Target edge length of stage `s` of this schedule as a share of the diagonal.

@@ -295,11 +295,7 @@ fn resolve_footprint(
         .map_or(Point3::origin(), |(lo, hi)| nalgebra::center(&lo, &hi));
     let pixels = inputs.targets.iter().filter_map(|t| t.pixel_mm_at(&centre));
     let pixel_mm = crate::util::median(pixels.collect());
-    let measured = inputs
-        .targets
-        .iter()
-        .flat_map(|t| &t.pixels)
-        .any(|p| p.bits.any());
+    let measured = inputs.targets.iter().any(ViewTargets::has_measured_bits);
     let diagonal = mesh.bbox_diagonal();
     let footprint = settings.resolve_footprint(measured.then_some(pixel_mm), diagonal);
     if settings.footprint == config::AUTO_FOOTPRINT {
@@ -310,7 +306,7 @@ fn resolve_footprint(
         };
         progress.note(&format!(
             "footprint: {footprint}×{footprint} rays per pixel (a camera pixel spans {pixel_mm:.2} mm at the object, the last stage's edges {:.2} mm{why})",
-            settings.edge_mm(settings.stages - 1, diagonal)
+            settings.last_edge_mm(diagonal)
         ));
     }
     Settings {
@@ -924,7 +920,7 @@ pub fn load_inputs(
             .iter()
             .map(|k| format!("view {k}: no refraction data (decode skipped it)")),
     );
-    let has_bits = targets.iter().flat_map(|t| &t.pixels).any(|p| p.bits.any());
+    let has_bits = targets.iter().any(ViewTargets::has_measured_bits);
     if settings.weight_bits > 0.0 && !has_bits && scan.dir.join("captures").is_dir() {
         warnings.push(format!(
             "the decoded data has no Gray-bit contrasts (decoded by an earlier glasscan): the per-bit term is idle; run `glasscan decode {}` again to use it",
