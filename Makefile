@@ -24,7 +24,7 @@ deps:
 	    exit 1; \
 	  fi; \
 	fi; \
-	command -v $(CARGO) >/dev/null || { echo "glasscan needs Rust >= 1.88 (cargo): install it with rustup, https://rustup.rs"; exit 1; }
+	command -v $(CARGO) >/dev/null || { echo "glasscan needs Rust >= 1.89 (cargo): install it with rustup, https://rustup.rs"; exit 1; }
 
 demo: deps
 	$(CARGO) run --release -- demo --out demo-out

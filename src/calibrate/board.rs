@@ -1,8 +1,10 @@
 //! Chessboard images: listing them, finding the board's inner corners (OpenCV, refined to
 //! sub-pixel), and the corners' positions on the board.
 //!
-//! Board frame: origin at the first inner corner OpenCV reports, x along the `cols` corners of a
-//! row, y along the rows, z = x × y (into the board as the camera sees it), mm.
+//! Board frame: origin at the first inner corner, x along the `cols` corners of a row, y along
+//! the rows, z = x × y (into the board as the camera sees it), mm. The first corner is the one
+//! whose square (between the first two rows' first two corners) is dark, so the frame does not
+//! flip between images of a board with `cols + rows` odd (a 9×6 board: 10×7 squares).
 
 use std::path::{Path, PathBuf};
 
@@ -45,33 +47,151 @@ impl Board {
             .collect()
     }
 
-    /// The inner corners of `image` (8-bit grey), sub-pixel refined as OpenCV's calibration
-    /// sample does (adaptive threshold, normalised image, fast check; 11×11 window); `None` if
-    /// the whole board is not found.
+    /// The inner corners of `image` (8-bit grey), sub-pixel refined, in a consistent order;
+    /// `None` if the whole board is not found. The steps:
+    ///
+    /// 1. OpenCV's classic detector (adaptive threshold, normalised image) without its fast
+    ///    check, which is meant for skipping video frames and rejects small boards in stills;
+    ///    failing that, OpenCV's sector-based detector (`findChessboardCornersSB`);
+    /// 2. the classic corners refined by `cornerSubPix` in a window sized from the board's own
+    ///    squares ([`subpixel_half_window`]), never wider than a square;
+    /// 3. the order turned by 180° where needed so that the square spanned by the first two
+    ///    rows' first two corners is the darker one ([`orient_dark_first`]): the board frame
+    ///    does not flip between images.
     pub fn find_corners(&self, image: &Mat) -> Result<Option<Vec<Point2<f64>>>> {
+        let Some((corners, refine)) = self.detect(image)? else {
+            return Ok(None);
+        };
+        let mut corners: Vec<Point2<f64>> = corners
+            .iter()
+            .map(|p| Point2::new(p.x as f64, p.y as f64))
+            .collect();
+        if refine {
+            corners = refine_corners(image, &corners, self.cols as usize)?;
+        }
+        orient_dark_first(image, &mut corners, self.cols as usize, self.rows as usize)?;
+        Ok(Some(corners))
+    }
+
+    /// Step 1 of [`find_corners`](Self::find_corners): the raw corners and whether they still
+    /// need sub-pixel refinement (the sector-based detector's are already refined).
+    fn detect(&self, image: &Mat) -> Result<Option<(Vector<Point2f>, bool)>> {
+        use opencv::calib3d as c3;
         let size = Size::new(self.cols as i32, self.rows as i32);
         let mut corners = Vector::<Point2f>::new();
-        let flags = opencv::calib3d::CALIB_CB_ADAPTIVE_THRESH
-            | opencv::calib3d::CALIB_CB_NORMALIZE_IMAGE
-            | opencv::calib3d::CALIB_CB_FAST_CHECK;
-        if !opencv::calib3d::find_chessboard_corners(image, size, &mut corners, flags)? {
-            return Ok(None);
+        let flags = c3::CALIB_CB_ADAPTIVE_THRESH | c3::CALIB_CB_NORMALIZE_IMAGE;
+        if c3::find_chessboard_corners(image, size, &mut corners, flags)? {
+            return Ok(Some((corners, true)));
         }
-        let criteria = super::criteria(30, 1e-4)?;
-        opencv::imgproc::corner_sub_pix(
-            image,
-            &mut corners,
-            Size::new(11, 11),
-            Size::new(-1, -1),
-            criteria,
-        )?;
-        Ok(Some(
-            corners
-                .iter()
-                .map(|p| Point2::new(p.x as f64, p.y as f64))
-                .collect(),
-        ))
+        let mut corners = Vector::<Point2f>::new();
+        let flags = c3::CALIB_CB_NORMALIZE_IMAGE | c3::CALIB_CB_EXHAUSTIVE | c3::CALIB_CB_ACCURACY;
+        if c3::find_chessboard_corners_sb(image, size, &mut corners, flags)? {
+            return Ok(Some((corners, false)));
+        }
+        Ok(None)
     }
+}
+
+/// Half-width w (pixels) of the `cornerSubPix` search window for a board whose smallest square
+/// side is `square_px` pixels ([`square_side_px`]): half the side, rounded, so that the window
+/// spans about one square and never reaches the neighbouring corners (a wider one lets their
+/// edges pull the refined corner between them); at least 2 and at most OpenCV's sample's 11
+/// (reached from 21 px squares on, so that large boards are refined as OpenCV's sample refines
+/// them).
+pub fn subpixel_half_window(square_px: f64) -> i32 {
+    ((square_px / 2.0).round() as i32).clamp(2, 11)
+}
+
+/// The board's smallest square side in the image, pixels: the shortest distance between
+/// neighbouring corners of a row-major grid of `cols` corners a row (a tilted board's squares
+/// are foreshortened along one direction).
+pub fn square_side_px(corners: &[Point2<f64>], cols: usize) -> f64 {
+    let mut side = f64::INFINITY;
+    for (k, p) in corners.iter().enumerate() {
+        if (k + 1) % cols != 0 && k + 1 < corners.len() {
+            side = side.min((corners[k + 1] - p).norm());
+        }
+        if let Some(q) = corners.get(k + cols) {
+            side = side.min((q - p).norm());
+        }
+    }
+    side
+}
+
+/// Step 2 of [`Board::find_corners`]: `cornerSubPix` with [`subpixel_half_window`] of the
+/// board's square side.
+fn refine_corners(image: &Mat, corners: &[Point2<f64>], cols: usize) -> Result<Vec<Point2<f64>>> {
+    let w = subpixel_half_window(square_side_px(corners, cols));
+    let mut cv: Vector<Point2f> = corners
+        .iter()
+        .map(|p| Point2f::new(p.x as f32, p.y as f32))
+        .collect();
+    opencv::imgproc::corner_sub_pix(
+        image,
+        &mut cv,
+        Size::new(w, w),
+        Size::new(-1, -1),
+        super::criteria(30, 1e-4)?,
+    )?;
+    Ok(cv
+        .iter()
+        .map(|p| Point2::new(p.x as f64, p.y as f64))
+        .collect())
+}
+
+/// Step 3 of [`Board::find_corners`]: reverses the row-major `corners` (a turn by 180° in the
+/// board's plane) when the square they start with is lighter than its neighbour. A board with
+/// `cols + rows` even looks the same turned, and is left in OpenCV's order.
+fn orient_dark_first(
+    image: &Mat,
+    corners: &mut [Point2<f64>],
+    cols: usize,
+    rows: usize,
+) -> Result<()> {
+    if (cols + rows).is_multiple_of(2) {
+        return Ok(());
+    }
+    // The first square (corners 0, 1, cols, cols + 1) against the next one along the row, or
+    // along the column when a row has only two corners.
+    let step = if cols >= 3 { 1 } else { cols };
+    let first = square_grey(image, corners, 0, cols)?;
+    let next = square_grey(image, corners, step, cols)?;
+    if first > next {
+        corners.reverse();
+    }
+    Ok(())
+}
+
+/// Mean grey level (0–255) of the pixels around the centre of the square whose top-left corner
+/// is `corners[k]` (row-major grid of `cols` a row), within a quarter of its diagonal.
+fn square_grey(image: &Mat, corners: &[Point2<f64>], k: usize, cols: usize) -> Result<f64> {
+    let quad = [
+        corners[k],
+        corners[k + 1],
+        corners[k + cols + 1],
+        corners[k + cols],
+    ];
+    let centre = quad
+        .iter()
+        .fold(nalgebra::Vector2::zeros(), |s, p| s + p.coords)
+        / 4.0;
+    let r = ((quad[2] - quad[0]).norm().min((quad[3] - quad[1]).norm()) / 4.0).max(0.5);
+    let (mut sum, mut n) = (0.0, 0usize);
+    let (w, h) = (image.cols(), image.rows());
+    let ri = r.ceil() as i32;
+    for dy in -ri..=ri {
+        for dx in -ri..=ri {
+            if ((dx * dx + dy * dy) as f64) > r * r {
+                continue;
+            }
+            let (x, y) = (centre.x.round() as i32 + dx, centre.y.round() as i32 + dy);
+            if x >= 0 && y >= 0 && x < w && y < h {
+                sum += *image.at_2d::<u8>(y, x)? as f64;
+                n += 1;
+            }
+        }
+    }
+    Ok(if n == 0 { 0.0 } else { sum / n as f64 })
 }
 
 /// An image of a calibration set, read as 8-bit grey.

@@ -1,13 +1,14 @@
 //! `calibrate camera`: intrinsics and lens distortion from chessboard images, through OpenCV's
-//! `calibrateCamera` exactly as OpenCV's calibration sample runs it (same corner detection and
-//! refinement, same flags), so that its results and its YAML keys match the sample's.
+//! `calibrateCamera` with the flags of OpenCV's calibration sample, so that its results and its
+//! YAML keys match the sample's. Corners are found as [`Board::find_corners`] says: every board
+//! OpenCV finds in a still, refined in a window sized from the board's squares.
 
 use std::path::PathBuf;
 
 use anyhow::{bail, Result};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Point2f, Point3f, Size, Vector};
 
-use super::board::{Board, BoardImage};
+use super::board::{square_side_px, Board, BoardImage};
 use crate::rig::calib_io::CameraRecord;
 use crate::rig::Camera;
 
@@ -61,6 +62,21 @@ pub struct CameraCalibration {
     pub skipped: Vec<PathBuf>,
     /// What the YAML file records beyond the camera.
     pub record: CameraRecord,
+    /// Median over the used images of the board's smallest square side, pixels.
+    pub square_px: f64,
+}
+
+impl CameraCalibration {
+    /// Why the fit is not to be trusted (reprojection error over
+    /// [`super::MAX_RMS_SQUARE_SHARE`] of a square), with the likely cause and the fix; `None`
+    /// when it is within the limit.
+    pub fn problem(&self) -> Option<String> {
+        super::rms_problem(
+            self.rms_px,
+            self.square_px,
+            "squares too small or blurred for the corners, a board that is not flat, or a lens the model does not fit (try without --fix-k3 or --zero-tangent)",
+        )
+    }
 }
 
 /// The smallest number of usable board images.
@@ -92,6 +108,7 @@ pub fn calibrate_camera(
         rms_px: solved.rms,
         views,
         skipped: found.skipped,
+        square_px: crate::util::median(found.square_px.clone()),
         record: CameraRecord {
             nframes: found.used.len(),
             board_width: board.cols,
@@ -111,6 +128,8 @@ struct FoundBoards {
     image_points: Vector<Vector<Point2f>>,
     used: Vec<PathBuf>,
     skipped: Vec<PathBuf>,
+    /// Per used image, the board's smallest square side, pixels.
+    square_px: Vec<f64>,
 }
 
 /// Finds the board's corners in every image; an error when fewer than [`MIN_IMAGES`] show it.
@@ -129,10 +148,12 @@ fn find_boards(
         image_points: Vector::new(),
         used: Vec::new(),
         skipped: Vec::new(),
+        square_px: Vec::new(),
     };
     for (i, im) in images.iter().enumerate() {
         match board.find_corners(&im.image)? {
             Some(c) => {
+                f.square_px.push(square_side_px(&c, board.cols as usize));
                 let corners = c.iter().map(|p| Point2f::new(p.x as f32, p.y as f32));
                 f.image_points.push(corners.collect());
                 f.object_points.push(object.clone());

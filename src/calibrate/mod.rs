@@ -11,7 +11,49 @@ use anyhow::Result;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Point2d, Point3d, Vector, CV_64F};
 
-use crate::rig::Camera;
+use crate::rig::{Camera, Screen};
+
+/// The largest RMS reprojection error a board fit may have before it is refused, as a share of
+/// the board's square side in the image. Corners of a sharp, well-lit board fit to about 1 % of
+/// a square; a window wider than the squares, a blurred or moving board, a wrong corner count or
+/// wrong turntable angles give 10–60 %. A share, not pixels, so that it holds at any camera
+/// resolution.
+pub const MAX_RMS_SQUARE_SHARE: f64 = 0.05;
+
+/// The largest difference (degrees) between a turntable image's measured turn and its given
+/// angle before the fit is refused.
+pub const MAX_ANGLE_RESIDUAL_DEG: f64 = 1.0;
+
+/// Why a board fit with RMS error `rms_px` over squares `square_px` wide is not to be trusted,
+/// or `None` within [`MAX_RMS_SQUARE_SHARE`]; `causes` lists the likely ones for the message.
+pub fn rms_problem(rms_px: f64, square_px: f64, causes: &str) -> Option<String> {
+    let share = rms_px / square_px;
+    (share.is_nan() || share > MAX_RMS_SQUARE_SHARE).then(|| {
+        format!(
+            "the corners fit to {rms_px:.2} px RMS, {:.0} % of a square ({square_px:.1} px; at most {:.0} % is trusted): likely {causes}",
+            100.0 * share,
+            100.0 * MAX_RMS_SQUARE_SHARE
+        )
+    })
+}
+
+/// Why a turntable axis through `axis_point` (camera frame, mm) does not fit between the camera
+/// and `screen`, or `None`. The board's square size sets the scale of every pose, and a wrong
+/// `--square-mm` moves the axis along the camera's rays by the same factor; the monitor, placed
+/// by its own pitch, shows it.
+pub fn axis_beyond_monitor(axis_point: &nalgebra::Point3<f64>, screen: &Screen) -> Option<String> {
+    let n = screen.pose.rotation * Vector3::z();
+    let origin = screen.pose.translation.vector;
+    // Signed distances to the monitor's plane, positive on the camera's side.
+    let side = -n.dot(&origin).signum();
+    let axis = side * n.dot(&(axis_point.coords - origin));
+    (axis.is_nan() || axis <= 0.0).then(|| {
+        format!(
+            "the axis lies {:.0} mm behind the monitor: the board's square size sets every distance, so --square-mm is likely not the printed square's side (measure it across several squares)",
+            -axis
+        )
+    })
+}
 
 /// OpenCV's stopping rule: at most `iterations`, or a change below `eps`.
 pub fn criteria(iterations: i32, eps: f64) -> Result<opencv::core::TermCriteria> {

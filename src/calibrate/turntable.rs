@@ -16,7 +16,7 @@ use nalgebra::{
 };
 use opencv::core::{Mat, Point2d, Point3d, Vector};
 
-use super::board::{Board, BoardImage};
+use super::board::{square_side_px, Board, BoardImage};
 use super::{camera_mats, pose_from_vectors};
 use crate::rig::Camera;
 
@@ -43,12 +43,43 @@ pub struct TurntableCalibration {
     pub views: Vec<TurntableView>,
     /// Images in which the board was not found.
     pub skipped: Vec<PathBuf>,
+    /// Median over the used images of the board's smallest square side, pixels.
+    pub square_px: f64,
+}
+
+impl TurntableCalibration {
+    /// Why the fit is not to be trusted (reprojection error over [`super::MAX_RMS_SQUARE_SHARE`]
+    /// of a square, or an image's angle off by more than [`super::MAX_ANGLE_RESIDUAL_DEG`]), with
+    /// the likely cause and the fix; `None` when it is within both limits.
+    pub fn problem(&self) -> Option<String> {
+        let worst = self.views.iter().max_by(|a, b| {
+            a.angle_residual_deg
+                .abs()
+                .total_cmp(&b.angle_residual_deg.abs())
+        })?;
+        if worst.angle_residual_deg.abs() > super::MAX_ANGLE_RESIDUAL_DEG {
+            return Some(format!(
+                "{} turned {:+.2}° from its given angle {}° (at most {}° is trusted): the angles likely do not match the images — give one per image in the images' name order, with the turntable's sense of rotation",
+                worst.path.display(),
+                worst.angle_residual_deg,
+                worst.angle_deg,
+                super::MAX_ANGLE_RESIDUAL_DEG
+            ));
+        }
+        super::rms_problem(
+            self.rms_px,
+            self.square_px,
+            "squares too small or blurred for the corners, a board that moved on the platter, or wrong angles",
+        )
+    }
 }
 
 /// Observed corners of one image.
 struct Observation {
     theta: f64,
     corners: Vec<Point2<f64>>,
+    /// The board's smallest square side in the image, pixels.
+    square_px: f64,
     pose: Isometry3<f64>,
 }
 
@@ -95,6 +126,7 @@ pub fn calibrate_turntable(
         )?;
         obs.push(Observation {
             theta: a.to_radians(),
+            square_px: square_side_px(&corners, board.cols as usize),
             corners,
             pose: pose_from_vectors(&rvec, &tvec)?,
         });
@@ -149,6 +181,7 @@ pub fn calibrate_turntable(
         rms_px: (residuals.norm_squared() / (obs.len() * object.len()) as f64).sqrt(),
         views,
         skipped,
+        square_px: crate::util::median(obs.iter().map(|o| o.square_px).collect()),
     })
 }
 

@@ -12,6 +12,7 @@ use crate::calibrate::screen;
 use crate::calibrate::turntable::calibrate_turntable;
 use crate::rig::calib_io;
 use crate::scan::ScanConfig;
+use crate::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
 #[derive(Subcommand, Debug)]
 pub enum CalibrateCommand {
@@ -63,6 +64,9 @@ pub struct CameraArgs {
     /// Hold k3 at 0 (advised for narrow lenses: the fit reports k3 in the hundreds otherwise).
     #[arg(long = "fix-k3")]
     pub fix_k3: bool,
+    /// Write the camera file even when the fit is outside the trusted limits (a warning then).
+    #[arg(long)]
+    pub force: bool,
     /// The camera file to write (OpenCV FileStorage YAML, the keys of OpenCV's sample).
     #[arg(short, long, default_value = "camera.yml")]
     pub output: PathBuf,
@@ -90,6 +94,13 @@ pub struct TurntableArgs {
     /// The camera's calibration file.
     #[arg(long)]
     pub camera: PathBuf,
+    /// The monitor's pose (screen.yml from `calibrate screen`): an axis that lands behind it
+    /// shows a wrong --square-mm.
+    #[arg(long)]
+    pub screen: Option<PathBuf>,
+    /// Write the turntable file even when the fit is outside the trusted limits (a warning then).
+    #[arg(long)]
+    pub force: bool,
     /// The turntable file to write.
     #[arg(short, long, default_value = "turntable.yml")]
     pub output: PathBuf,
@@ -103,9 +114,28 @@ pub fn run(c: &CalibrateCommand) -> Result<()> {
     }
 }
 
+/// Refuses a fit outside the trusted limits (`problem`), or with `force` only warns.
+fn check_fit(problem: Option<String>, force: bool, what: &str) -> Result<()> {
+    match problem {
+        None => Ok(()),
+        Some(p) if force => {
+            eprintln!("warning: {p}; written anyway (--force)");
+            Ok(())
+        }
+        Some(p) => bail!("{p}; the {what} file is not written (--force writes it anyway)"),
+    }
+}
+
+/// The image files of a board set: inputs that no output may overwrite.
+fn image_paths(images: &[crate::calibrate::board::BoardImage]) -> Vec<&std::path::Path> {
+    images.iter().map(|i| i.path.as_path()).collect()
+}
+
 fn camera(a: &CameraArgs) -> Result<()> {
     let board = a.board.board()?;
+    ensure_extension(&a.output, "--output", &["yml", "yaml"])?;
     let (images, size) = read_images(&a.board.images)?;
+    ensure_output_spares_inputs(&a.output, "--output", &image_paths(&images))?;
     let o = CameraOptions {
         fix_aspect_ratio: a.fix_aspect_ratio,
         zero_tangent: a.zero_tangent,
@@ -130,6 +160,7 @@ fn camera(a: &CameraArgs) -> Result<()> {
         );
     }
     let c = &cal.camera;
+    check_fit(cal.problem(), a.force, "camera")?;
     calib_io::write_camera(&a.output, c, cal.rms_px, Some(&cal.record))?;
     outln!(
         "{} of {} images used; fx {:.3} fy {:.3} cx {:.3} cy {:.3} px; k1 {:.5} k2 {:.5} p1 {:.6} p2 {:.6} k3 {:.5}; RMS reprojection error {:.4} px",
@@ -200,8 +231,14 @@ fn screen(a: &ScreenArgs) -> Result<()> {
 
 fn turntable(a: &TurntableArgs) -> Result<()> {
     let board = a.board.board()?;
+    ensure_extension(&a.output, "--output", &["yml", "yaml"])?;
     let camera = calib_io::read_camera(&a.camera)?;
+    let screen = a.screen.as_deref().map(calib_io::read_screen).transpose()?;
     let (images, size) = read_images(&a.board.images)?;
+    let mut inputs = image_paths(&images);
+    inputs.push(&a.camera);
+    inputs.extend(a.screen.as_deref());
+    ensure_output_spares_inputs(&a.output, "--output", &inputs)?;
     if size != (camera.width, camera.height) {
         bail!(
             "the images are {}×{} but the camera ({}) takes {}×{}",
@@ -225,6 +262,8 @@ fn turntable(a: &TurntableArgs) -> Result<()> {
             v.path.display()
         );
     }
+    let behind = screen.and_then(|s| crate::calibrate::axis_beyond_monitor(&cal.axis_point, &s));
+    check_fit(cal.problem().or(behind), a.force, "turntable")?;
     calib_io::write_turntable_axis(&a.output, &cal.axis_point, &cal.axis_dir)?;
     let (p, d) = (cal.axis_point, cal.axis_dir);
     outln!(

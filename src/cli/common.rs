@@ -75,7 +75,10 @@ pub fn positive(s: &str) -> Result<f64, String> {
     if v > 0.0 {
         Ok(v)
     } else {
-        Err(format!("{v}: it must be positive"))
+        Err(format!(
+            "{}: it must be positive",
+            crate::util::short_number(v)
+        ))
     }
 }
 
@@ -85,7 +88,10 @@ pub fn non_negative(s: &str) -> Result<f64, String> {
     if v >= 0.0 {
         Ok(v)
     } else {
-        Err(format!("{v}: it must not be negative"))
+        Err(format!(
+            "{}: it must not be negative",
+            crate::util::short_number(v)
+        ))
     }
 }
 
@@ -95,7 +101,10 @@ pub fn share(s: &str) -> Result<f64, String> {
     if (0.0..=1.0).contains(&v) {
         Ok(v)
     } else {
-        Err(format!("{v}: it must lie in [0, 1]"))
+        Err(format!(
+            "{}: it must lie in [0, 1]",
+            crate::util::short_number(v)
+        ))
     }
 }
 
@@ -119,18 +128,23 @@ pub fn positive_share(s: &str) -> Result<f64, String> {
     if v > 0.0 && v <= 1.0 {
         Ok(v)
     } else {
-        Err(format!("{v}: it must lie in (0, 1]"))
+        Err(format!(
+            "{}: it must lie in (0, 1]",
+            crate::util::short_number(v)
+        ))
     }
 }
 
 /// A solid object's refractive index: above 1 (air) and at most 4 (beyond any clear solid).
 pub fn ior(s: &str) -> Result<f64, String> {
     let v = finite(s)?;
-    if v > 1.0 && v <= 4.0 {
+    let max = crate::scan::MAX_IOR;
+    if v > 1.0 && v <= max {
         Ok(v)
     } else {
         Err(format!(
-            "{v}: a solid transparent object's refractive index lies in (1, 4] (glass ≈ 1.5)"
+            "{}: a solid transparent object's refractive index lies in (1, {max}] (glass ≈ 1.5)",
+            crate::util::short_number(v)
         ))
     }
 }
@@ -158,7 +172,10 @@ pub fn auto_or_open_share(s: &str) -> Result<AutoShare, String> {
     if v > 0.0 && v < 1.0 {
         Ok(AutoShare(Some(v as f32)))
     } else {
-        Err(format!("{v}: it must lie in (0, 1), or be auto"))
+        Err(format!(
+            "{}: it must lie in (0, 1), or be auto",
+            crate::util::short_number(v)
+        ))
     }
 }
 

@@ -48,6 +48,10 @@ pub struct DecodeArgs {
     /// Object regions smaller than this are dropped, pixels.
     #[arg(long = "min-component-px", default_value_t = 50, value_parser = clap::value_parser!(i32).range(0..))]
     pub min_component_px: i32,
+    /// Bits per sample of 16-bit captures, 9 to 16 (default: each view's, the smallest of 10, 12,
+    /// 14 and 16 that holds its white image).
+    #[arg(long = "bit-depth", value_parser = clap::value_parser!(u32).range(9..=16))]
+    pub bit_depth: Option<u32>,
     /// Holes smaller than this are filled, pixels.
     #[arg(long = "max-hole-px", default_value_t = 50, value_parser = clap::value_parser!(i32).range(0..))]
     pub max_hole_px: i32,
@@ -68,6 +72,7 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
             min_component_px: a.min_component_px,
             max_hole_px: a.max_hole_px,
         },
+        bit_depth: a.bit_depth,
     };
     let bar = bar("decode", views.len());
     let t0 = std::time::Instant::now();

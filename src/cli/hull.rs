@@ -40,12 +40,14 @@ pub struct HullArgs {
 
 pub fn run(a: &HullArgs) -> Result<()> {
     let t0 = Instant::now();
-    ensure_output_spares_inputs(&a.output, "--output", &[&a.scan])?;
+    let scan = super::common::open_scan(&a.scan)?;
+    let inputs = scan.input_paths();
+    ensure_output_spares_inputs(&a.output, "--output", &inputs)?;
     if let Some(r) = &a.report {
         ensure_extension(r, "--report", &["json"])?;
-        ensure_output_spares_inputs(r, "--report", &[&a.scan, &a.output])?;
+        ensure_output_spares_inputs(r, "--report", &inputs)?;
+        ensure_output_spares_inputs(r, "--report", &[&a.output])?;
     }
-    let scan = super::common::open_scan(&a.scan)?;
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let (sils, warnings) = silhouettes(&scan, &views)?;
     for w in &warnings {

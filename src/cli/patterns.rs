@@ -6,6 +6,7 @@ use anyhow::{bail, Result};
 use clap::Args;
 
 use crate::patterns::{GrayCode, PhaseShift};
+use crate::util::folder::{StagedFolder, FORCE_HINT};
 
 #[derive(Args, Debug)]
 pub struct PatternsArgs {
@@ -21,6 +22,9 @@ pub struct PatternsArgs {
     /// Period of the phase-shift sinusoid, monitor pixels.
     #[arg(long = "period-px", default_value_t = 64, requires = "phase_steps")]
     pub period_px: u32,
+    /// Replace a non-empty output folder (whole, once the new images are written).
+    #[arg(long)]
+    pub force: bool,
 }
 
 pub fn run(a: &PatternsArgs) -> Result<()> {
@@ -35,17 +39,31 @@ pub fn run(a: &PatternsArgs) -> Result<()> {
             code.height
         );
     }
-    code.write_images(&a.out)?;
-    if let Some(steps) = a.phase_steps {
-        let p = PhaseShift {
-            steps,
-            period_px: a.period_px,
-        };
-        if steps < 3 || a.period_px < 4 {
-            bail!("--phase-shift {steps} --period-px {}: need at least 3 steps and a period of 4 pixels", a.period_px);
-        }
-        p.write_images(&a.out, code.width, code.height)?;
-        outln!("wrote {} phase-shift images (phase_u_*, phase_v_*: {steps} steps, period {} monitor pixels)", p.file_names().len(), a.period_px);
+    let phase = a.phase_steps.map(|steps| PhaseShift {
+        steps,
+        period_px: a.period_px,
+    });
+    if let Some(p) = phase.filter(|p| p.steps < 3 || p.period_px < 4) {
+        bail!(
+            "--phase-shift {} --period-px {}: need at least 3 steps and a period of 4 pixels",
+            p.steps,
+            p.period_px
+        );
+    }
+    // Written whole: no image of an earlier set is left beside the new one.
+    let staged = StagedFolder::new(&a.out, a.force, FORCE_HINT)?;
+    code.write_images(staged.path())?;
+    if let Some(p) = phase {
+        p.write_images(staged.path(), code.width, code.height)?;
+    }
+    staged.commit()?;
+    if let Some(p) = phase {
+        outln!(
+            "wrote {} phase-shift images (phase_u_*, phase_v_*: {} steps, period {} monitor pixels)",
+            p.file_names().len(),
+            p.steps,
+            p.period_px
+        );
     }
     outln!(
         "wrote {} Gray-code images + white + black for a {}x{} monitor into {} (order in ORDER.txt)",

@@ -16,6 +16,7 @@ use crate::reconstruct::config::{Preset, Settings};
 use crate::reconstruct::output;
 use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
 use crate::reconstruct::Start;
+use crate::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]
 pub struct ReconstructArgs {
@@ -56,7 +57,11 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
     let scan = super::common::open_scan(&a.scan)?;
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let settings = settings(a)?;
-    let existing = output::prepare(&a.output, a.resume, a.force)?;
+    let mut inputs = scan.input_paths();
+    inputs.extend(a.config.iter().chain(&a.init).cloned());
+    ensure_output_spares_inputs(&a.output, "--output", &inputs)?;
+    // Held until the run ends: a second run, --resume or --force on this folder is refused.
+    let (existing, _lock) = output::prepare(&a.output, a.resume, a.force)?;
     let init = a.init.as_deref().map(read_init).transpose()?;
     let start = match &init {
         Some(m) => Start::Mesh(m),

@@ -6,8 +6,10 @@ use anyhow::Result;
 use clap::Args;
 
 use super::common::{bar, ior, non_negative, parse_size, positive, positive_share};
+use crate::calibrate::board::Board;
 use crate::mesh::io::read_mesh;
 use crate::patterns::PhaseShift;
+use crate::simulate::calibration::{CalibrationBoards, MAX_CAMERA_IMAGES};
 use crate::simulate::Transport;
 use crate::simulate::{simulate, SimulateOptions};
 use crate::simulate::{MAX_SPP, MAX_VIEWS};
@@ -86,6 +88,20 @@ pub struct SimulateArgs {
     /// turntable, the background capture for the monitor) under SCAN/calibration/.
     #[arg(long = "calibration-images")]
     pub calibration_images: bool,
+    /// Inner corners of the calibration boards, COLSxROWS (with --calibration-images).
+    #[arg(long, default_value = "9x6", value_parser = Board::parse_size, requires = "calibration_images")]
+    pub board: (u32, u32),
+    /// Square side of the printed board, mm, for both calibration sets (default: sized with
+    /// the rig, a large board for the camera and a smaller one for the turntable).
+    #[arg(long = "square-mm", value_parser = positive, requires = "calibration_images")]
+    pub square_mm: Option<f64>,
+    /// Square side of the board standing on the turntable, mm, when it is a second, smaller
+    /// print (default: --square-mm).
+    #[arg(long = "turntable-square-mm", value_parser = positive, requires = "calibration_images")]
+    pub turntable_square_mm: Option<f64>,
+    /// Images of the camera's board.
+    #[arg(long = "board-images", default_value_t = 60, value_parser = clap::value_parser!(u32).range(3..=MAX_CAMERA_IMAGES as i64), requires = "calibration_images")]
+    pub board_images: u32,
     /// Replace a non-empty output folder (whole, once the new scan is written).
     #[arg(long)]
     pub force: bool,
@@ -126,6 +142,13 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
                 anyhow::anyhow!("--distortion takes 5 coefficients: k1,k2,p1,p2,k3")
             })?,
             calibration_images: a.calibration_images,
+            boards: CalibrationBoards {
+                cols: a.board.0,
+                rows: a.board.1,
+                camera_square_mm: a.square_mm,
+                turntable_square_mm: a.turntable_square_mm,
+                camera_images: a.board_images as usize,
+            },
             force: a.force,
         };
     let bar = bar("simulate", a.views as usize);

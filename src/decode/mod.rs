@@ -2,6 +2,7 @@
 //! it sees, with the uncertainty its reliable bits leave. The decoded form is documented in the
 //! README (`decoded/` of the scan folder).
 
+mod carry;
 pub mod coherence;
 pub mod compare;
 pub mod graycode;
@@ -12,7 +13,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use nalgebra::Point3;
-use opencv::core::{MatTraitConst, MatTraitConstManual, Vec3b, Vec4w};
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec3b, Vec4w, CV_16U, CV_8U};
 
 use crate::patterns::{GrayCode, PhaseShift};
 use crate::scan::decoded::{self as form, ViewSummary};
@@ -42,6 +43,9 @@ pub struct DecodeOptions {
     /// Smallest phase modulation (B/A) a refined pixel needs.
     pub min_modulation: f64,
     pub mask: MaskOptions,
+    /// Bits per sample of 16-bit captures (a 12-bit camera stores values up to 4095);
+    /// `None`: the smallest of 10, 12, 14 and 16 that holds each view's white image.
+    pub bit_depth: Option<u32>,
 }
 
 impl Default for DecodeOptions {
@@ -53,6 +57,7 @@ impl Default for DecodeOptions {
             use_phase: true,
             min_modulation: 0.3,
             mask: MaskOptions::default(),
+            bit_depth: None,
         }
     }
 }
@@ -86,6 +91,64 @@ fn object_contrasts(cap: &DecodedCapture, mask: &[u8], monitor: &[Vec4w]) -> Vec
         .collect()
 }
 
+/// Reads one capture as grey at its own depth (8 or 16 bits), checked to be `size`.
+fn read_capture(path: &Path, size: (u32, u32)) -> Result<Mat> {
+    use opencv::imgcodecs::{imread, IMREAD_ANYDEPTH, IMREAD_GRAYSCALE};
+    let m = imread(path, IMREAD_GRAYSCALE | IMREAD_ANYDEPTH)
+        .with_context(|| format!("cannot read {}", path.display()))?;
+    if m.empty() {
+        bail!("{}: not a readable image", path.display());
+    }
+    if (m.cols() as u32, m.rows() as u32) != size {
+        bail!(
+            "{}: {}×{} pixels, but the camera (camera.yml) takes {}×{}",
+            path.display(),
+            m.cols(),
+            m.rows(),
+            size.0,
+            size.1
+        );
+    }
+    if !matches!(m.depth(), CV_8U | CV_16U) {
+        bail!(
+            "{}: captures are 8- or 16-bit grey or colour images",
+            path.display()
+        );
+    }
+    Ok(m)
+}
+
+/// The bits per sample of a view whose white capture is `white`: 8 for 8-bit images, else the
+/// smallest of 10, 12, 14 and 16 bits that holds its brightest pixel.
+fn bit_depth_of(white: &Mat) -> Result<u32> {
+    if white.depth() == CV_8U {
+        return Ok(8);
+    }
+    let max = white
+        .data_typed::<u16>()?
+        .iter()
+        .copied()
+        .max()
+        .unwrap_or(0);
+    Ok([10, 12, 14, 16]
+        .into_iter()
+        .find(|&b| u32::from(max) < 1 << b)
+        .unwrap_or(16))
+}
+
+/// `m` as 8-bit grey levels, a 16-bit image scaled from `bits` bits per sample.
+fn to_8bit(m: Mat, bits: u32) -> Result<Mat> {
+    let m = if m.depth() == CV_8U {
+        m
+    } else {
+        let mut out = Mat::default();
+        let scale = 255.0 / ((1u64 << bits.clamp(8, 16)) - 1) as f64;
+        m.convert_to(&mut out, CV_8U, scale, 0.0)?;
+        out
+    };
+    Ok(if m.is_continuous() { m } else { m.try_clone()? })
+}
+
 /// Reads and decodes the captures in `dir` (with the phase-shift images if `phase` is given),
 /// keeping the fine bits' differences if `keep_fine`; names the missing or misfit image.
 pub fn decode_captures(
@@ -97,38 +160,27 @@ pub fn decode_captures(
     keep_fine: bool,
 ) -> Result<DecodedCapture> {
     let names = crate::patterns::capture_names(code, phase);
-    let mut mats = Vec::with_capacity(names.len());
-    for name in &names {
-        let path = dir.join(name);
-        if !path.is_file() {
-            bail!(
-                "{}: missing capture (expected {} images named as in `glasscan patterns`)",
-                path.display(),
-                names.len()
-            );
-        }
-        let m = opencv::imgcodecs::imread(&path, opencv::imgcodecs::IMREAD_GRAYSCALE)
-            .with_context(|| format!("cannot read {}", path.display()))?;
-        if m.empty() {
-            bail!("{}: not a readable image", path.display());
-        }
-        if (m.cols() as u32, m.rows() as u32) != size {
-            bail!(
-                "{}: {}×{} pixels, but the camera (camera.yml) takes {}×{}",
-                path.display(),
-                m.cols(),
-                m.rows(),
-                size.0,
-                size.1
-            );
-        }
-        mats.push(if m.is_continuous() { m } else { m.try_clone()? });
+    let n = code.pattern_count();
+    let paths: Vec<_> = names.iter().map(|name| dir.join(name)).collect();
+    if let Some(path) = paths.iter().find(|p| !p.is_file()) {
+        bail!(
+            "{}: missing capture (expected {} images named as in `glasscan patterns`)",
+            path.display(),
+            names.len()
+        );
     }
+    let depth = match o.bit_depth {
+        Some(bits) => bits,
+        None => bit_depth_of(&read_capture(&paths[n], size)?)?,
+    };
+    let mats = paths
+        .iter()
+        .map(|path| to_8bit(read_capture(path, size)?, depth))
+        .collect::<Result<Vec<_>>>()?;
     let data: Vec<&[u8]> = mats
         .iter()
         .map(|m| m.data_typed::<u8>())
         .collect::<Result<_, _>>()?;
-    let n = code.pattern_count();
     let (white, black) = (data[n], data[n + 1]);
     let test = BitTest {
         white_threshold: o.white_threshold,
@@ -157,7 +209,8 @@ pub fn decode_captures(
 }
 
 /// Decodes views `views` of `scan` into `scan/decoded/` (replaced whole once the decode is
-/// complete; a failure leaves the previous decode as it was).
+/// complete; a failure leaves the previous decode as it was). The other views' decoded files and
+/// any file the user put there are kept ([`carry::carry_over`]).
 pub fn decode_scan(
     scan: &Scan,
     views: &[usize],
@@ -170,12 +223,15 @@ pub fn decode_scan(
     let size = (scan.camera.width, scan.camera.height);
     check_memory(size, &code, phase)?;
     // The new decode replaces `decoded/` whole once it is complete; until then the old one stays.
-    let staged = StagedFolder::new(&scan.dir.join("decoded"), true, "")?;
+    // It starts from what it does not decode again of the old one.
+    let target = scan.dir.join("decoded");
+    let staged = StagedFolder::new(&target, true, "")?;
     let out = staged.path().to_path_buf();
+    let fixed = FixedPoint::for_screen(code.width, code.height);
+    let kept = carry::carry_over(&target, &out, views, &fixed)?;
     std::fs::create_dir_all(out.join("preview"))
         .with_context(|| format!("cannot create {}", out.display()))?;
     let (background, background_capture) = background_reference(scan, &code, phase, size, o)?;
-    let fixed = FixedPoint::for_screen(code.width, code.height);
     let writer = ViewWriter {
         out: &out,
         background: &background,
@@ -204,7 +260,9 @@ pub fn decode_scan(
         progress(&summary);
         summaries.push(summary);
     }
-    form::write_summary(&out, &fixed, &summaries)?;
+    let mut all: Vec<ViewSummary> = kept.into_iter().chain(summaries.iter().cloned()).collect();
+    all.sort_by_key(|s| s.view);
+    form::write_summary(&out, &fixed, &all)?;
     staged.commit()?;
     Ok(summaries)
 }

@@ -6,6 +6,7 @@
 
 pub mod config;
 pub mod coverage;
+pub mod fingerprint;
 pub mod optim;
 pub mod output;
 pub mod pipeline;
@@ -54,6 +55,8 @@ pub struct Inputs {
     pub ior: f64,
     pub targets: Vec<ViewTargets>,
     pub silhouettes: Vec<Silhouette>,
+    /// What the inputs were read from ([`fingerprint`]); a run resumes only from the same.
+    pub fingerprint: fingerprint::Fingerprint,
 }
 
 /// The weighted means of the terms at one iteration (before its step).
@@ -122,6 +125,9 @@ pub struct Checkpoint {
     /// The membrane term judged on the first stage after the warm-up, once it has ended.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub membrane: Option<MembraneVerdict>,
+    /// What the run's inputs were read from ([`fingerprint`]).
+    #[serde(default)]
+    pub inputs: fingerprint::Fingerprint,
 }
 
 /// Whether the warm-up made the mesh fit the held-out views better: DRT's steps carve what the
@@ -215,7 +221,7 @@ pub fn run(
 ) -> Result<Finished> {
     settings.check().map_err(anyhow::Error::msg)?;
     let (mut ck, mut mesh) = match existing {
-        Existing::Run(ck) => continue_run(*ck, settings, out)?,
+        Existing::Run(ck) => continue_run(*ck, inputs, settings, out)?,
         Existing::Nothing => begin_run(inputs, start, settings, out, progress)?,
     };
     let stages = settings.total_stages();
@@ -275,6 +281,7 @@ fn begin_run(
         stages: Vec::new(),
         warm_up: None,
         membrane: None,
+        inputs: inputs.fingerprint.clone(),
     };
     commit(out, &ck)?;
     Ok((ck, mesh))
@@ -315,8 +322,21 @@ fn resolve_footprint(
     }
 }
 
-/// The committed state of the run in `out`, checked against `settings`.
-fn continue_run(ck: Checkpoint, settings: &Settings, out: &Path) -> Result<(Checkpoint, TriMesh)> {
+/// The committed state of the run in `out`, checked against `inputs` and `settings`.
+fn continue_run(
+    ck: Checkpoint,
+    inputs: &Inputs,
+    settings: &Settings,
+    out: &Path,
+) -> Result<(Checkpoint, TriMesh)> {
+    let changed = fingerprint::changes(&ck.inputs, &inputs.fingerprint);
+    if !changed.is_empty() {
+        bail!(
+            "--resume: the run in {} was made from other inputs ({} changed since): give the scan and views it was made from, or start over with --force",
+            out.display(),
+            changed.join(", ")
+        );
+    }
     if !settings.continues(&ck.settings) {
         bail!(
             "--resume: the settings differ from the run in {} (its settings are in checkpoint.json)",
@@ -932,6 +952,7 @@ pub fn load_inputs(
             ior: scan.config.ior,
             targets,
             silhouettes,
+            fingerprint: fingerprint::of_scan(scan, views)?,
         },
         warnings,
     ))
@@ -953,6 +974,7 @@ mod tests {
             stages: Vec::new(),
             warm_up: None,
             membrane: None,
+            inputs: Default::default(),
         }
     }
 
@@ -989,6 +1011,12 @@ mod tests {
         let warmed = crate::mesh::shapes::icosphere(12.0, 1);
         write_mesh(&dir.path().join("start.ply"), &start).unwrap();
         let mut ck = checkpoint(None);
+        let inputs = Inputs {
+            ior: 1.5,
+            targets: Vec::new(),
+            silhouettes: Vec::new(),
+            fingerprint: Default::default(),
+        };
         ck.stages_done = ck.settings.warmup_stages;
         for s in 0..ck.stages_done {
             write_mesh(&stage_path(dir.path(), s), &warmed).unwrap();
@@ -1000,9 +1028,16 @@ mod tests {
                 discarded,
             });
             let settings = ck.settings.clone();
-            let (_, mesh) = continue_run(ck.clone(), &settings, dir.path()).unwrap();
+            let (_, mesh) = continue_run(ck.clone(), &inputs, &settings, dir.path()).unwrap();
             assert_eq!(mesh.positions, want.positions, "discarded: {discarded}");
         }
+        // Inputs other than the run's are refused, naming what changed.
+        let other = Inputs {
+            fingerprint: [("decoded".to_string(), "1".to_string())].into(),
+            ..inputs
+        };
+        let e = continue_run(ck.clone(), &other, &ck.settings, dir.path()).unwrap_err();
+        assert!(e.to_string().contains("(decoded changed since)"), "{e}");
     }
 
     #[test]
@@ -1059,6 +1094,7 @@ mod tests {
                 ..view_down_z(100.0, (500.0, 500.0))
             }],
             silhouettes: Vec::new(),
+            fingerprint: Default::default(),
         };
         let measured = PixelBits {
             u: [

@@ -13,6 +13,7 @@ use anyhow::{bail, Context, Result};
 
 use super::Checkpoint;
 use crate::util::atomic::write_atomic;
+use crate::util::lock::OutputLock;
 
 /// The checkpoint of a run in `out`.
 pub fn checkpoint_path(out: &Path) -> PathBuf {
@@ -99,7 +100,19 @@ pub fn commit(out: &Path, ck: &Checkpoint) -> Result<()> {
 ///   otherwise.
 /// - A folder holding other files: always refused (`force` never deletes what glasscan did not
 ///   write).
-pub fn prepare(out: &Path, resume: bool, force: bool) -> Result<Existing> {
+///
+/// The folder is locked for this process first ([`OutputLock`], held by the caller until the run
+/// ends): a second run on it, or a `--resume` or `--force` while a run writes it, is refused.
+/// The folder is created, so that a run that cannot write it stops before any work.
+pub fn prepare(out: &Path, resume: bool, force: bool) -> Result<(Existing, OutputLock)> {
+    let lock = OutputLock::acquire(out)?;
+    let existing = existing_run(out, resume, force)?;
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    Ok((existing, lock))
+}
+
+/// [`prepare`]'s decision, once the folder is locked.
+fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
     let names = folder_entries(out)?;
     if names.is_empty() {
         return Ok(Existing::Nothing);
@@ -183,7 +196,7 @@ mod tests {
         let e = prepare(dir.path(), false, false).unwrap_err().to_string();
         assert!(e.contains("before its first checkpoint"), "{e}");
         assert!(matches!(
-            prepare(dir.path(), true, false).unwrap(),
+            prepare(dir.path(), true, false).unwrap().0,
             Existing::Nothing
         ));
         assert!(!dir.path().join("hull.ply").exists());

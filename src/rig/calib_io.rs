@@ -64,7 +64,22 @@ impl<'a> Reader<'a> {
                  calibration files in the README)",
             ));
         }
-        let fs = FileStorage::new(path, opencv::core::FileStorage_READ, "").map_err(|_| {
+        // Parsed from memory: OpenCV reads a '?' in a file name as the start of options.
+        let meta =
+            std::fs::metadata(path).map_err(|e| err(path, format!("cannot read it: {e}")))?;
+        if meta.len() > MAX_FILE_BYTES {
+            return Err(err(
+                path,
+                format!(
+                    "{} bytes: a calibration file is at most {MAX_FILE_BYTES} bytes",
+                    meta.len()
+                ),
+            ));
+        }
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| err(path, format!("cannot read it as text: {e}")))?;
+        let flags = opencv::core::FileStorage_READ | opencv::core::FileStorage_MEMORY;
+        let fs = FileStorage::new(&text, flags, "").map_err(|_| {
             err(
                 path,
                 "its YAML cannot be parsed (check indentation, colons and the !!opencv-matrix \
@@ -193,6 +208,9 @@ impl<'a> Reader<'a> {
         Ok((r, c))
     }
 }
+
+/// The largest calibration file read, bytes (a view-pose file of 3600 views is about 1 MB).
+const MAX_FILE_BYTES: u64 = 64 << 20;
 
 /// The first bytes of a file (up to 16).
 fn read_head(path: &Path) -> std::io::Result<Vec<u8>> {

@@ -235,6 +235,36 @@ pub fn write_summary(dir: &Path, fixed: &FixedPoint, views: &[ViewSummary]) -> R
     .with_context(|| format!("cannot write {}", dir.join("summary.json").display()))
 }
 
+/// Reads `dir/summary.json`: the fixed-point scale and the per-view figures.
+pub fn read_summary(dir: &Path) -> Result<(FixedPoint, Vec<ViewSummary>)> {
+    let path = dir.join("summary.json");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("cannot read {}", path.display()))?;
+    #[derive(serde::Deserialize)]
+    struct Summary {
+        fixed_point_scale: f64,
+        views: Vec<ViewSummary>,
+    }
+    let s: Summary = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not a decode summary", path.display()))?;
+    if s.fixed_point_scale.is_nan() || s.fixed_point_scale <= 0.0 {
+        bail!("{}: fixed_point_scale must be positive", path.display());
+    }
+    Ok((
+        FixedPoint {
+            scale: s.fixed_point_scale,
+        },
+        s.views,
+    ))
+}
+
+/// True when `name` is a file of view `k` in the decoded folder or its previews
+/// (`view_NNN_….png`, `view_NNN.png`).
+pub fn is_view_file(name: &str, k: usize) -> bool {
+    name.strip_prefix(&format!("view_{k:03}"))
+        .is_some_and(|rest| rest.starts_with('_') || rest.starts_with('.'))
+}
+
 /// The decoded folder of a scan, opened for reading.
 #[derive(Clone, Debug)]
 pub struct DecodedScan {
@@ -257,25 +287,12 @@ impl DecodedScan {
                 scan_dir.display()
             );
         }
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("cannot read {}", path.display()))?;
-        #[derive(serde::Deserialize)]
-        struct Summary {
-            fixed_point_scale: f64,
-            views: Vec<ViewSummary>,
-        }
-        let s: Summary = serde_json::from_str(&text)
-            .with_context(|| format!("{}: not a decode summary", path.display()))?;
-        if s.fixed_point_scale.is_nan() || s.fixed_point_scale <= 0.0 {
-            bail!("{}: fixed_point_scale must be positive", path.display());
-        }
+        let (fixed, summaries) = read_summary(&dir)?;
         Ok(Self {
             dir,
-            fixed: FixedPoint {
-                scale: s.fixed_point_scale,
-            },
+            fixed,
             size,
-            summaries: s.views,
+            summaries,
         })
     }
 

@@ -117,6 +117,43 @@ pub enum ScanError {
     },
 }
 
+/// The largest refractive index a scan may give (the densest glasses and crystals are below 2.5;
+/// diamond 2.42).
+pub const MAX_IOR: f64 = 4.0;
+
+/// The most views a scan may have.
+pub const MAX_VIEWS: usize = 3600;
+
+/// The largest turntable angle a scan may give, degrees (ten turns either way).
+pub const MAX_ANGLE_DEG: f64 = 3600.0;
+
+/// Refuses capture folders (`captures/view_NNN`) beyond the views `scan.toml` lists: a view
+/// without an angle would be silently left out.
+fn check_view_folders(dir: &Path, views: usize) -> Result<(), ScanError> {
+    let captures = dir.join("captures");
+    let Ok(entries) = std::fs::read_dir(&captures) else {
+        return Ok(());
+    };
+    let beyond = entries
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            name.strip_prefix("view_")?.parse::<usize>().ok()
+        })
+        .filter(|&k| k >= views)
+        .min();
+    match beyond {
+        Some(k) => Err(ScanError::Config {
+            path: dir.join("scan.toml"),
+            msg: format!(
+                "views.angles_deg lists {views} angles but {} exists: give one angle per captures/view_NNN folder",
+                captures.join(format!("view_{k:03}")).display()
+            ),
+        }),
+        None => Ok(()),
+    }
+}
+
 impl ScanConfig {
     /// Reads and checks `dir/scan.toml` (not the calibration files it names).
     pub fn load(dir: &Path) -> Result<Self, ScanError> {
@@ -135,18 +172,24 @@ impl ScanConfig {
             path: path.clone(),
             msg,
         };
-        if !(config.ior > 1.0 && config.ior.is_finite()) {
+        if !(config.ior > 1.0 && config.ior <= MAX_IOR) {
             return Err(bad(format!(
-                "ior = {}: a solid object's refractive index is above 1",
-                config.ior
+                "ior = {}: a solid transparent object's refractive index lies in (1, {MAX_IOR}] (glass ≈ 1.5)",
+                crate::util::short_number(config.ior)
             )));
         }
-        if config.views.angles_deg.is_empty()
-            || config.views.angles_deg.iter().any(|a| !a.is_finite())
-        {
-            return Err(bad(
-                "views.angles_deg must list at least one finite angle".into()
-            ));
+        let angles = &config.views.angles_deg;
+        if angles.is_empty() || angles.len() > MAX_VIEWS {
+            return Err(bad(format!(
+                "views.angles_deg lists {} angles: give 1 to {MAX_VIEWS}, one per view",
+                angles.len()
+            )));
+        }
+        if let Some(a) = angles.iter().find(|a| a.is_nan() || a.abs() > MAX_ANGLE_DEG) {
+            return Err(bad(format!(
+                "views.angles_deg holds {}: turntable angles are degrees within ±{MAX_ANGLE_DEG}",
+                crate::util::short_number(*a)
+            )));
         }
         if let Some(p) = config.patterns.phase_shift {
             if !(3..=64).contains(&p.steps) || !(4..=65_536).contains(&p.period_px) {
@@ -197,6 +240,7 @@ impl Scan {
     /// Loads `dir/scan.toml` and the calibration files it names, and checks that they agree.
     pub fn open(dir: &Path) -> Result<Self, ScanError> {
         let config = ScanConfig::load(dir)?;
+        check_view_folders(dir, config.views.angles_deg.len())?;
         let c = &config.calibration;
         let camera = calib_io::read_camera(&dir.join(&c.camera))?;
         let screen = calib_io::read_screen(&dir.join(&c.screen))?;
@@ -283,6 +327,27 @@ impl Scan {
             poses,
             _checked: (),
         })
+    }
+
+    /// The files and folders a command reading this scan reads: `scan.toml`, the calibration
+    /// files, `decoded/` and `captures/` (read whole). No output may be, hold or lie in one.
+    pub fn input_paths(&self) -> Vec<PathBuf> {
+        let c = &self.config.calibration;
+        let mut paths = vec![self.dir.join("scan.toml")];
+        paths.extend(
+            [
+                Some(&c.camera),
+                Some(&c.screen),
+                Some(&c.turntable),
+                c.poses.as_ref(),
+            ]
+            .into_iter()
+            .flatten()
+            .map(|f| self.dir.join(f)),
+        );
+        paths.push(self.dir.join("decoded"));
+        paths.push(self.dir.join("captures"));
+        paths
     }
 
     /// Named warnings about a rig that works but looks wrong: the turntable axis projects

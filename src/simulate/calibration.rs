@@ -1,8 +1,9 @@
 //! Calibration image sets with known truth (`simulate --calibration-images`):
 //!
-//! - `calibration/camera/board_NN.png`: a 9×6 chessboard at varied distances, tilts (±55°) and places in
-//!   the image, seen through the camera's lens model (its distortion included);
-//! - `calibration/turntable/board_NN.png`: a smaller 9×6 board standing on the turntable, beside the axis,
+//! - `calibration/camera/board_NN.png`: a chessboard at distances from 0.45 to 1.2 × the camera's
+//!   distance to the axis, tilted up to ±55°, at varied places in the image, seen through the
+//!   camera's lens model (its distortion included);
+//! - `calibration/turntable/board_NN.png`: a board standing on the turntable, beside the axis,
 //!   turned to each angle of `calibration/setup.json`;
 //! - the background capture (`captures/background/`) for the monitor pose;
 //! - `calibration/setup.json`: the boards (inner corners, square sizes) and the turntable angles,
@@ -25,8 +26,36 @@ use crate::rig::Camera;
 use crate::scan::Scan;
 use crate::util::scatter_seed;
 
-/// Board images for the camera.
-pub const CAMERA_IMAGES: usize = 60;
+/// The boards of the calibration sets, as a user prints them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CalibrationBoards {
+    /// Inner corners per row and per column.
+    pub cols: u32,
+    pub rows: u32,
+    /// Square side of the camera's board, mm; `None`: sized with the rig (the board with its
+    /// margins spans 0.6 of the image width at the axis).
+    pub camera_square_mm: Option<f64>,
+    /// Square side of the board standing on the turntable, mm; `None`: the camera's board when
+    /// that is given, else sized with the rig (0.5 of the image width).
+    pub turntable_square_mm: Option<f64>,
+    /// Images of the camera's board.
+    pub camera_images: usize,
+}
+
+impl Default for CalibrationBoards {
+    fn default() -> Self {
+        Self {
+            cols: 9,
+            rows: 6,
+            camera_square_mm: None,
+            turntable_square_mm: None,
+            camera_images: 60,
+        }
+    }
+}
+
+/// The most images of the camera's board a simulation renders.
+pub const MAX_CAMERA_IMAGES: usize = 500;
 /// Turntable angles of the board standing on it, degrees.
 pub const TURNTABLE_ANGLES: [f64; 9] = [-40.0, -30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 40.0];
 /// Grey levels of the board's black and white squares and of what lies behind it.
@@ -52,19 +81,10 @@ pub struct Setup {
 /// `scan.dir/calibration`; the commands in `setup.json` name the scan's final folder `out`.
 pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) -> Result<()> {
     let cam = &scan.camera;
-    // Boards whose width with margins (12 squares) is a share of the image width at the axis
-    // distance: a large one for the camera (strong perspective when tilted), a smaller one that
-    // stays in view on the turntable.
-    let board_for = |share: f64| Board {
-        cols: 9,
-        rows: 6,
-        square_mm: (share * cam.width as f64 * o.camera_distance_mm / cam.fx / 12.0 * 10.0).round()
-            / 10.0,
-    };
-    let (board, small) = (board_for(0.6), board_for(0.5));
+    let (board, small) = boards(cam, o);
     let dir = scan.dir.join("calibration");
     let seed = scatter_seed(o.seed);
-    let poses = camera_board_poses(cam, &board, o.camera_distance_mm, seed ^ 0xca1b)?;
+    let poses = camera_board_poses(cam, &board, o, seed ^ 0xca1b)?;
     render_set(&dir.join("camera"), &poses, &board, cam, o, seed ^ 0x5eed)?;
     let turned = turntable_board_poses(scan, &small)?;
     render_set(
@@ -78,18 +98,42 @@ pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) ->
     write_setup(&dir, out, &board, &small)
 }
 
-/// [`CAMERA_IMAGES`] random poses (board → camera) of `board` held in front of the camera
-/// about `distance_mm` away, tilted up to 55°, each wholly in view.
+/// The camera's and the turntable's boards of `o.boards`. A board sized with the rig has a
+/// width with margins (cols + 3 squares) that is a share of the image width at the axis
+/// distance: a large one for the camera (strong perspective when tilted), a smaller one that
+/// stays in view on the turntable; sides rounded to 0.1 mm.
+fn boards(cam: &Camera, o: &SimulateOptions) -> (Board, Board) {
+    let b = &o.boards;
+    let with_rig = |share: f64| {
+        let squares = (b.cols + 3) as f64;
+        (share * cam.width as f64 * o.camera_distance_mm / cam.fx / squares * 10.0).round() / 10.0
+    };
+    let camera_square = b.camera_square_mm.unwrap_or_else(|| with_rig(0.6));
+    let turntable_square = b
+        .turntable_square_mm
+        .or(b.camera_square_mm)
+        .unwrap_or_else(|| with_rig(0.5));
+    let board = |square_mm| Board {
+        cols: b.cols,
+        rows: b.rows,
+        square_mm,
+    };
+    (board(camera_square), board(turntable_square))
+}
+
+/// `o.boards.camera_images` random poses (board → camera) of `board` held in front of the
+/// camera 0.45–1.2 × `o.camera_distance_mm` away, tilted up to 55°, each wholly in view.
 fn camera_board_poses(
     cam: &Camera,
     board: &Board,
-    distance_mm: f64,
+    o: &SimulateOptions,
     seed: u64,
 ) -> Result<Vec<Isometry3<f64>>> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut poses = Vec::new();
-    for _ in 0..10_000 {
-        if poses.len() == CAMERA_IMAGES {
+    let wanted = o.boards.camera_images;
+    for _ in 0..100_000 {
+        if poses.len() == wanted {
             break;
         }
         let rot = UnitQuaternion::from_euler_angles(
@@ -97,7 +141,7 @@ fn camera_board_poses(
             rng.random_range(-55f64..55.0).to_radians(),
             rng.random_range(-15f64..15.0).to_radians(),
         );
-        let z = distance_mm * rng.random_range(0.8..1.2);
+        let z = o.camera_distance_mm * rng.random_range(0.45..1.2);
         let centre = Vector3::new(
             rng.random_range(-0.35..0.35) * cam.width as f64 * z / cam.fx,
             rng.random_range(-0.35..0.35) * cam.height as f64 * z / cam.fy,
@@ -109,8 +153,12 @@ fn camera_board_poses(
             poses.push(pose);
         }
     }
-    if poses.len() < CAMERA_IMAGES {
-        bail!("cannot place the calibration board in the camera's view");
+    if poses.len() < wanted {
+        bail!(
+            "cannot place the {} mm board in the camera's view at 0.45–1.2 × {} mm: give a smaller --square-mm or a larger --camera-distance-mm",
+            board.square_mm,
+            o.camera_distance_mm
+        );
     }
     Ok(poses)
 }
@@ -141,7 +189,8 @@ fn turntable_board_poses(scan: &Scan, small: &Board) -> Result<Vec<Isometry3<f64
         .collect();
     if let Some(k) = turned.iter().position(|p| !in_view(&scan.camera, p, small)) {
         bail!(
-            "the turntable board leaves the camera's view at {}° (raise --camera-distance-mm)",
+            "the turntable's {} mm board leaves the camera's view at {}° (give a smaller --turntable-square-mm or a larger --camera-distance-mm)",
+            small.square_mm,
             TURNTABLE_ANGLES[k]
         );
     }
@@ -152,6 +201,7 @@ fn turntable_board_poses(scan: &Scan, small: &Board) -> Result<Vec<Isometry3<f64
 /// images.
 fn write_setup(dir: &Path, out: &Path, board: &Board, small: &Board) -> Result<()> {
     let board_arg = format!("{}x{}", board.cols, board.rows);
+    let screen = format!("{}/screen.yml", out.display());
     let scan_dir = out.display();
     let angles: Vec<String> = TURNTABLE_ANGLES.iter().map(|a| a.to_string()).collect();
     let setup = Setup {
@@ -162,7 +212,7 @@ fn write_setup(dir: &Path, out: &Path, board: &Board, small: &Board) -> Result<(
         commands: vec![
             format!("glasscan calibrate camera --images '{scan_dir}/calibration/camera/*.png' --board {board_arg} --square-mm {} -o {scan_dir}/camera.yml", board.square_mm),
             format!("glasscan calibrate screen {scan_dir}"),
-            format!("glasscan calibrate turntable --images '{scan_dir}/calibration/turntable/*.png' --board {board_arg} --square-mm {} --angles={} --camera {scan_dir}/camera.yml -o {scan_dir}/turntable.yml", small.square_mm, angles.join(",")),
+            format!("glasscan calibrate turntable --images '{scan_dir}/calibration/turntable/*.png' --board {board_arg} --square-mm {} --angles={} --camera {scan_dir}/camera.yml --screen {screen} -o {scan_dir}/turntable.yml", small.square_mm, angles.join(",")),
         ],
     };
     crate::util::atomic::write_atomic(&dir.join("setup.json"), |w| {

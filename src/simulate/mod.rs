@@ -74,6 +74,8 @@ pub struct SimulateOptions {
     pub distortion: [f64; 5],
     /// Also render calibration image sets (see [`calibration`]) and the background capture.
     pub calibration_images: bool,
+    /// The chessboards of the calibration sets.
+    pub boards: calibration::CalibrationBoards,
     /// Replace a non-empty output folder (whole, once the new scan is written).
     pub force: bool,
 }
@@ -103,6 +105,7 @@ impl Default for SimulateOptions {
             phase_shift: None,
             distortion: [0.0; 5],
             calibration_images: false,
+            boards: calibration::CalibrationBoards::default(),
             force: false,
         }
     }
@@ -391,8 +394,7 @@ fn render_background(
     Ok(median(footprints(&background, o.spp, |_| true)))
 }
 
-/// The most turntable views a simulated scan may have (0.1° steps).
-pub const MAX_VIEWS: usize = 3600;
+pub use crate::scan::MAX_VIEWS;
 /// The most area samples per pixel.
 pub const MAX_SPP: u32 = 1024;
 
@@ -461,6 +463,34 @@ fn check_options(o: &SimulateOptions) -> Result<()> {
     }
     if o.distortion.iter().any(|d| d.is_nan() || d.abs() >= 1.0) {
         bail!("distortion coefficients must be finite and below 1 in size");
+    }
+    check_boards(&o.boards)
+}
+
+/// The calibration boards' bounds: 2–64 inner corners a side, squares of 0.1–1000 mm, 3 to
+/// [`calibration::MAX_CAMERA_IMAGES`] images of the camera's board.
+fn check_boards(b: &calibration::CalibrationBoards) -> Result<()> {
+    if !(2..=64).contains(&b.cols) || !(2..=64).contains(&b.rows) {
+        bail!(
+            "--board {}x{}: 2 to 64 inner corners a side",
+            b.cols,
+            b.rows
+        );
+    }
+    for s in [b.camera_square_mm, b.turntable_square_mm]
+        .into_iter()
+        .flatten()
+    {
+        if !(0.1..=1000.0).contains(&s) {
+            bail!("a board square of {s} mm: give 0.1 to 1000 mm");
+        }
+    }
+    let n = b.camera_images;
+    if !(3..=calibration::MAX_CAMERA_IMAGES).contains(&n) {
+        bail!(
+            "{n} camera board images: give 3 to {}",
+            calibration::MAX_CAMERA_IMAGES
+        );
     }
     Ok(())
 }

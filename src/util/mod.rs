@@ -6,7 +6,18 @@ pub mod budget;
 pub mod fixed;
 pub mod folder;
 pub mod image;
+pub mod lock;
 pub mod paths;
+
+/// `v` as a user reads it in a message: plain for ordinary magnitudes, in exponent form beyond
+/// (so that `1e300` is not echoed as 301 digits).
+pub fn short_number(v: f64) -> String {
+    if v == 0.0 || (1e-4..1e6).contains(&v.abs()) {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
 
 /// The median of `v` (the upper one for an even count); NaN for an empty list.
 pub fn median(mut v: Vec<f64>) -> f64 {

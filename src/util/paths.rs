@@ -24,13 +24,20 @@ fn resolved(path: &Path) -> PathBuf {
     }
 }
 
-/// Refuses an output that is one of `inputs`, or (an output folder) holds one: writing it would
-/// destroy what the command reads. `option` names the output's option for the message.
-pub fn ensure_output_spares_inputs(output: &Path, option: &str, inputs: &[&Path]) -> Result<()> {
+/// Refuses an output that is one of `inputs`, (an output folder) holds one, or lies inside one
+/// (an input folder read whole, such as a scan's `decoded/`): writing it would destroy or change
+/// what the command reads. Paths are compared with their symbolic links resolved. `option`
+/// names the output's option for the message. Every command that writes calls it.
+pub fn ensure_output_spares_inputs<P: AsRef<Path>>(
+    output: &Path,
+    option: &str,
+    inputs: &[P],
+) -> Result<()> {
     let out = resolved(output);
     for input in inputs {
+        let input = input.as_ref();
         let inp = resolved(input);
-        if inp == out || inp.starts_with(&out) {
+        if inp == out || inp.starts_with(&out) || out.starts_with(&inp) {
             bail!(
                 "{option} {} would overwrite the input {}: choose another output path",
                 output.display(),
@@ -77,6 +84,16 @@ mod tests {
         assert!(refused(dir.path()));
         assert!(!refused(&dir.path().join("b.ply")));
         assert!(!refused(&dir.path().join("new").join("a.ply")));
+        // Inside an input folder.
+        let decoded = dir.path().join("decoded");
+        std::fs::create_dir(&decoded).unwrap();
+        let inside = |out: &Path| ensure_output_spares_inputs(out, "-o", &[&decoded]).is_err();
+        assert!(inside(&decoded.join("summary.json")));
+        assert!(!inside(&dir.path().join("hull.ply")));
+        // Through a symbolic link to the input.
+        let link = dir.path().join("link");
+        std::os::unix::fs::symlink(&decoded, &link).unwrap();
+        assert!(inside(&link.join("x.json")));
     }
 
     #[test]

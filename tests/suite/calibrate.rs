@@ -13,7 +13,7 @@ use glasscan::calibrate::turntable::calibrate_turntable;
 use glasscan::decode::{decode_captures, DecodeOptions};
 use glasscan::mesh::shapes::icosphere;
 use glasscan::scan::Scan;
-use glasscan::simulate::calibration::TURNTABLE_ANGLES;
+use glasscan::simulate::calibration::{CalibrationBoards, TURNTABLE_ANGLES};
 use glasscan::simulate::{simulate, SimulateOptions};
 use nalgebra::Vector3;
 use opencv::core::{FileNodeTraitConst, FileStorage, FileStorageTraitConst, MatTraitConstManual};
@@ -400,4 +400,210 @@ fn bad_calibration_input_gives_clear_errors() {
     std::fs::remove_dir_all(&dark_bg).unwrap();
     let o = glasscan(&["calibrate", "screen", dark.to_str().unwrap()]);
     refused(&o, "no background capture");
+}
+
+/// The rig of a user's first calibration: a 640×480 camera (f ≈ 634 px, k1 = −0.08), 20 images
+/// of a printed 25 mm board at 250–550 mm for the camera, and a 9×6 board of 10.9 mm squares
+/// standing on the turntable 550 mm away (squares about 12 px wide) at −40…40° every 10°.
+fn small_board_rig() -> &'static (tempfile::TempDir, Scan) {
+    static RIG: OnceLock<(tempfile::TempDir, Scan)> = OnceLock::new();
+    RIG.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let ball = icosphere(60.0, 3);
+        let (lo, hi) = ball.bbox().unwrap();
+        let height = hi.y - lo.y;
+        let o = SimulateOptions {
+            views: 1,
+            width: 640,
+            height: 480,
+            spp: 1,
+            noise: 1.0,
+            blur_px: 0.5,
+            decoded_only: true,
+            calibration_images: true,
+            fill: 634.0 * height / (480.0 * 550.0),
+            distortion: [-0.08, 0.0, 0.0, 0.0, 0.0],
+            boards: CalibrationBoards {
+                camera_square_mm: Some(25.0),
+                turntable_square_mm: Some(10.9),
+                camera_images: 20,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        simulate(&ball, dir.path(), &o, |_| ()).unwrap();
+        let scan = Scan::open(dir.path()).unwrap();
+        assert!(
+            (scan.camera.fx / 634.0 - 1.0).abs() < 0.01,
+            "{:?}",
+            scan.camera
+        );
+        (dir, scan)
+    })
+}
+
+/// Axis direction error (degrees) and the distance (mm) of the fitted axis point from the true
+/// axis.
+fn axis_errors(
+    cal: &glasscan::calibrate::turntable::TurntableCalibration,
+    truth: &Scan,
+) -> (f64, f64) {
+    let dt = truth.turntable.axis_dir;
+    let off: Vector3<f64> = cal.axis_point - truth.turntable.axis_point;
+    let across = (off - dt.into_inner() * dt.dot(&off)).norm();
+    (cal.axis_dir.angle(&dt).to_degrees(), across)
+}
+
+#[test]
+fn small_turntable_board_uses_every_image_and_fits_the_axis() {
+    let (_dir, truth) = small_board_rig();
+    let board = |square_mm| Board {
+        cols: 9,
+        rows: 6,
+        square_mm,
+    };
+    // The camera from the 25 mm board.
+    let (images, size) =
+        read_images(truth.dir.join("calibration/camera/*.png").to_str().unwrap()).unwrap();
+    let o = CameraOptions {
+        zero_tangent: true,
+        ..Default::default()
+    };
+    let cam = calibrate_camera(&images, size, &board(25.0), &o, |_| ()).unwrap();
+    let (c, t) = (&cam.camera, &truth.camera);
+    eprintln!(
+        "camera: {} of 20 images, fx {:.2} (truth {:.2}), c ({:.2}, {:.2}) (truth ({:.2}, {:.2})), RMS {:.3} px",
+        cam.views.len(), c.fx, t.fx, c.cx, c.cy, t.cx, t.cy, cam.rms_px
+    );
+    // A board tilted 55° both ways can be too oblique for OpenCV: at most two of 20 are.
+    assert!(cam.views.len() >= 18, "skipped {:?}", cam.skipped);
+    assert!((c.fx / t.fx - 1.0).abs() < 2e-3 && (c.fy / t.fy - 1.0).abs() < 2e-3);
+    assert!((c.cx - t.cx).abs() < 1.0 && (c.cy - t.cy).abs() < 1.0);
+    assert!(cam.problem().is_none(), "{:?}", cam.problem());
+    // The turntable from the 10.9 mm board, with the true camera and with the calibrated one.
+    let (images, _) = read_images(
+        truth
+            .dir
+            .join("calibration/turntable/*.png")
+            .to_str()
+            .unwrap(),
+    )
+    .unwrap();
+    for (what, camera) in [("true", &truth.camera), ("calibrated", &cam.camera)] {
+        let cal = calibrate_turntable(&images, &TURNTABLE_ANGLES, &board(10.9), camera).unwrap();
+        let (angle, across) = axis_errors(&cal, truth);
+        eprintln!(
+            "turntable, {what} camera: {} of 9 images, squares {:.1} px, RMS {:.3} px, axis {angle:.3}°, {across:.3} mm",
+            cal.views.len(), cal.square_px, cal.rms_px
+        );
+        assert_eq!(cal.views.len(), 9, "skipped {:?}", cal.skipped);
+        assert!(cal.square_px < 14.0, "squares {} px", cal.square_px);
+        assert!(cal.rms_px <= 0.3, "RMS {} px", cal.rms_px);
+        assert!(angle < 0.1 && across < 0.3, "axis {angle}°, {across} mm");
+        assert!(cal.problem().is_none(), "{:?}", cal.problem());
+    }
+}
+
+/// A board turned by 180° in the image gives the same corners in the same order: the board
+/// frame does not flip between images.
+#[test]
+fn corner_order_follows_the_board_not_the_image() {
+    let (_dir, truth) = small_board_rig();
+    let board = Board {
+        cols: 9,
+        rows: 6,
+        square_mm: 10.9,
+    };
+    let path = truth.dir.join("calibration/turntable/board_04.png");
+    let image = glasscan::calibrate::board::read_grey(&path).unwrap();
+    let mut turned = opencv::core::Mat::default();
+    opencv::core::rotate(&image, &mut turned, opencv::core::ROTATE_180).unwrap();
+    let a = board.find_corners(&image).unwrap().unwrap();
+    let b = board.find_corners(&turned).unwrap().unwrap();
+    let (w, h) = (640.0 - 1.0, 480.0 - 1.0);
+    for (p, q) in a.iter().zip(&b) {
+        let back = nalgebra::Point2::new(w - q.x, h - q.y);
+        assert!((p - back).norm() < 0.1, "{p} vs {back}");
+    }
+}
+
+#[test]
+fn turntable_fits_with_wrong_square_or_shuffled_angles_are_refused() {
+    let (_dir, truth) = small_board_rig();
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("tt.yml");
+    let images = truth.dir.join("calibration/turntable/*.png");
+    let run_with = |square: &str, angles: &str| {
+        glasscan(&[
+            "calibrate",
+            "turntable",
+            "--images",
+            images.to_str().unwrap(),
+            "--board",
+            "9x6",
+            "--square-mm",
+            square,
+            &format!("--angles={angles}"),
+            "--camera",
+            truth.dir.join("camera.yml").to_str().unwrap(),
+            "--screen",
+            truth.dir.join("screen.yml").to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ])
+    };
+    let right = "-40,-30,-20,-10,0,10,20,30,40";
+    let o = run_with("10.9", right);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    std::fs::remove_file(&out).unwrap();
+    refused(&run_with("25", right), "--square-mm is likely not");
+    assert!(!out.exists());
+    refused(
+        &run_with("10.9", "-40,-30,-20,10,0,-10,20,30,40"),
+        "the angles likely do not match the images",
+    );
+    assert!(!out.exists());
+    // --force writes it, with the reason as a warning.
+    let o = run(Command::new(env!("CARGO_BIN_EXE_glasscan")).args([
+        "calibrate",
+        "turntable",
+        "--images",
+        images.to_str().unwrap(),
+        "--board",
+        "9x6",
+        "--square-mm",
+        "10.9",
+        "--angles=-40,-30,-20,10,0,-10,20,30,40",
+        "--camera",
+        truth.dir.join("camera.yml").to_str().unwrap(),
+        "--force",
+        "-o",
+        out.to_str().unwrap(),
+    ]));
+    assert!(o.status.success() && out.exists());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("written anyway"));
+}
+
+#[test]
+fn subpixel_window_stays_inside_the_squares() {
+    use glasscan::calibrate::board::subpixel_half_window;
+    for side in [5.0, 8.0, 12.0, 12.6, 20.0, 40.0, 200.0] {
+        let w = subpixel_half_window(side);
+        assert!((2..=11).contains(&w), "{side}: {w}");
+        assert!(
+            f64::from(2 * w) <= side + 1.0 || w == 2,
+            "{side} px squares: window {}",
+            2 * w + 1
+        );
+    }
+    assert_eq!(
+        subpixel_half_window(12.0),
+        6,
+        "a 13 px window on 12 px squares"
+    );
+    assert_eq!(
+        subpixel_half_window(40.0),
+        11,
+        "OpenCV's sample's window on large squares"
+    );
 }
