@@ -36,7 +36,7 @@ use crate::reconstruct::pipeline::{reconstruct_scan, Job};
 use crate::reconstruct::{Existing, Progress, Start};
 use crate::rig::{calib_io, Camera, Screen};
 use crate::scan::Scan;
-use crate::simulate::calibration::Setup;
+use crate::simulate::calibration::{CalibrationBoards, Setup};
 use crate::simulate::simulate;
 
 /// The lens of the simulated camera, OpenCV's k1 k2 p1 p2 k3: barrel distortion of about 2 % at
@@ -52,6 +52,10 @@ pub struct CalibratedBenchOptions {
     pub work: PathBuf,
     pub objects: Vec<String>,
     pub preset: Preset,
+    /// The camera and fill of the scans.
+    pub rig: Rig,
+    /// The printed boards (default: sized with the rig).
+    pub boards: CalibrationBoards,
 }
 
 /// How far the calibration from images is from the simulator's truth.
@@ -62,6 +66,19 @@ pub struct CalibrationErrors {
     pub principal_point_px: f64,
     /// RMS reprojection error of the camera calibration, px.
     pub camera_rms_px: f64,
+    /// RMS reprojection error of the turntable fit, px, and its largest angle residual, degrees.
+    #[serde(default)]
+    pub turntable_rms_px: f64,
+    #[serde(default)]
+    pub turntable_angle_deg: f64,
+    /// Square sides of the camera's and the turntable's boards, mm, and the turntable board's
+    /// smallest square side in the images, px.
+    #[serde(default)]
+    pub camera_square_mm: f64,
+    #[serde(default)]
+    pub turntable_square_mm: f64,
+    #[serde(default)]
+    pub turntable_square_px: f64,
     /// The largest distance of a monitor corner from its true place, mm.
     pub monitor_corner_mm: f64,
     /// Angle between the calibrated and the true monitor normals, degrees.
@@ -77,6 +94,8 @@ pub struct CalibrationErrors {
 pub struct CalibratedRun {
     pub object: String,
     pub preset: Preset,
+    #[serde(default)]
+    pub rig: Rig,
     pub calibration: CalibrationErrors,
     /// Accuracy and completeness (mm) with the true calibration files.
     pub true_accuracy_mm: f64,
@@ -101,7 +120,7 @@ pub fn run_calibrated_bench(
     for object in &o.objects {
         if results
             .iter()
-            .any(|r| r.object == *object && r.preset == o.preset)
+            .any(|r| r.object == *object && r.preset == o.preset && r.rig == o.rig)
         {
             continue;
         }
@@ -123,11 +142,12 @@ fn run_object(
     log: &dyn Fn(&str),
 ) -> Result<CalibratedRun> {
     let scans = o.work.join("scans");
-    let true_dir = scans.join(format!("{object}_true"));
-    ensure_scan(mesh, &true_dir, log)?;
+    let suffix = o.rig.folder_suffix();
+    let true_dir = scans.join(format!("{object}_true{suffix}"));
+    ensure_scan(mesh, &true_dir, o, log)?;
     let truth_scan = Scan::open(&true_dir)?;
     log(&format!("{object}: calibrating from the images"));
-    let calibrated_dir = scans.join(format!("{object}_calibrated"));
+    let calibrated_dir = scans.join(format!("{object}_calibrated{suffix}"));
     let calibration = calibrated_scan(&truth_scan, &calibrated_dir)?;
     let calibrated_scan = Scan::open(&calibrated_dir)?;
     log(&format!("{object}: {}", describe(&calibration)));
@@ -135,7 +155,7 @@ fn run_object(
     let (t, t_s) = reconstruct(
         &truth_scan,
         o.preset,
-        &runs.join(format!("{object}_true")),
+        &runs.join(format!("{object}_true{suffix}")),
         progress,
     )?;
     log(&format!(
@@ -145,7 +165,7 @@ fn run_object(
     let (c, c_s) = reconstruct(
         &calibrated_scan,
         o.preset,
-        &runs.join(format!("{object}_calibrated")),
+        &runs.join(format!("{object}_calibrated{suffix}")),
         progress,
     )?;
     log(&format!(
@@ -155,6 +175,7 @@ fn run_object(
     Ok(CalibratedRun {
         object: object.into(),
         preset: o.preset,
+        rig: o.rig,
         calibration,
         true_accuracy_mm: t.accuracy_mm,
         true_completeness_mm: t.completeness_mm,
@@ -167,7 +188,12 @@ fn run_object(
 
 /// Simulates the noisy scan with a distorting lens and the calibration images, and decodes it,
 /// unless `dir` already holds it.
-fn ensure_scan(object: &ObjectMesh, dir: &Path, log: &dyn Fn(&str)) -> Result<()> {
+fn ensure_scan(
+    object: &ObjectMesh,
+    dir: &Path,
+    o: &CalibratedBenchOptions,
+    log: &dyn Fn(&str),
+) -> Result<()> {
     if dir.join("decoded").join("summary.json").is_file() {
         return Ok(());
     }
@@ -175,8 +201,9 @@ fn ensure_scan(object: &ObjectMesh, dir: &Path, log: &dyn Fn(&str)) -> Result<()
     let options = crate::simulate::SimulateOptions {
         distortion: LENS,
         calibration_images: true,
+        boards: o.boards,
         normals: object.normals(),
-        ..ScanKind::Noisy.simulate_options(&Rig::default())
+        ..ScanKind::Noisy.simulate_options(&o.rig.for_object(&mesh)?)
     };
     log(&format!(
         "simulating {} with calibration images into {}",
@@ -233,6 +260,9 @@ fn calibrated_scan(truth: &Scan, dir: &Path) -> Result<CalibrationErrors> {
         &board(setup.turntable_square_mm),
         &cam.camera,
     )?;
+    if let Some(p) = cam.problem().or(axis.problem()) {
+        anyhow::bail!("{}: {p}", truth.dir.display());
+    }
     write_scan_folder(
         truth,
         dir,
@@ -243,7 +273,19 @@ fn calibrated_scan(truth: &Scan, dir: &Path) -> Result<CalibrationErrors> {
     )?;
     let calibrated = Scan::open(dir)?;
     write_truth_in_frame(truth, &calibrated)?;
-    Ok(errors(truth, &calibrated, cam.rms_px))
+    let worst_angle = axis
+        .views
+        .iter()
+        .map(|v| v.angle_residual_deg.abs())
+        .fold(0.0, f64::max);
+    Ok(CalibrationErrors {
+        turntable_rms_px: axis.rms_px,
+        turntable_angle_deg: worst_angle,
+        camera_square_mm: setup.camera_square_mm,
+        turntable_square_mm: setup.turntable_square_mm,
+        turntable_square_px: axis.square_px,
+        ..errors(truth, &calibrated, cam.rms_px)
+    })
 }
 
 /// A scan folder with the calibrated files beside a link to `truth`'s decoded data.
@@ -311,6 +353,11 @@ fn errors(truth: &Scan, calibrated: &Scan, camera_rms_px: f64) -> CalibrationErr
             .map(|h| off_axis(ta.axis_point + ta.axis_dir.into_inner() * h))
             .into_iter()
             .fold(0.0, f64::max),
+        turntable_rms_px: 0.0,
+        turntable_angle_deg: 0.0,
+        camera_square_mm: 0.0,
+        turntable_square_mm: 0.0,
+        turntable_square_px: 0.0,
     }
 }
 
@@ -356,20 +403,27 @@ fn reconstruct(
 /// Writes calibrated.json and calibrated.md.
 fn write_results(work: &Path, results: &[CalibratedRun]) -> Result<()> {
     let mut md = String::from(
-        "| object | preset | focal % | principal point px | monitor corner mm | monitor normal ° | axis ° | axis mm | true calibration acc./compl. mm | from images acc./compl. mm | difference mm |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| object | camera, fill | preset | boards mm (turntable px) | focal % | principal point px | monitor corner mm | monitor normal ° | axis ° | axis mm | turntable RMS px | true calibration acc./compl. mm | from images acc./compl. mm | difference mm |\n|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in results {
         let e = &r.calibration;
         md += &format!(
-            "| {} | {} | {:+.3} | {:.2} | {:.3} | {:.4} | {:.4} | {:.3} | {:.3} / {:.3} | {:.3} / {:.3} | {:+.3} |\n",
+            "| {} | {}×{}, {} | {} | {} / {} ({:.1}) | {:+.3} | {:.2} | {:.3} | {:.4} | {:.4} | {:.3} | {:.3} | {:.3} / {:.3} | {:.3} / {:.3} | {:+.3} |\n",
             r.object,
+            r.rig.width,
+            r.rig.height,
+            r.rig.fill,
             r.preset,
+            e.camera_square_mm,
+            e.turntable_square_mm,
+            e.turntable_square_px,
             e.focal_percent,
             e.principal_point_px,
             e.monitor_corner_mm,
             e.monitor_normal_deg,
             e.axis_direction_deg,
             e.axis_offset_mm,
+            e.turntable_rms_px,
             r.true_accuracy_mm,
             r.true_completeness_mm,
             r.calibrated_accuracy_mm,

@@ -130,7 +130,7 @@ impl Default for Rig {
 
 impl Rig {
     /// Suffix of the scan folders: none for the default rig.
-    fn folder_suffix(&self) -> String {
+    pub(super) fn folder_suffix(&self) -> String {
         let camera = Rig {
             large_monitor: false,
             ..*self
@@ -148,7 +148,7 @@ impl Rig {
     }
 
     /// This rig for `mesh`: with [`LARGE_MONITOR`] if the default monitor does not cover it.
-    fn for_object(&self, mesh: &TriMesh) -> Result<Rig> {
+    pub(super) fn for_object(&self, mesh: &TriMesh) -> Result<Rig> {
         let default = ScanKind::Exact.simulate_options(self);
         Ok(Rig {
             large_monitor: !monitor_covers(mesh, &default)?,

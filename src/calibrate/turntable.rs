@@ -26,7 +26,8 @@ pub struct TurntableView {
     pub path: PathBuf,
     /// The angle given for it, degrees.
     pub angle_deg: f64,
-    /// Its own board pose's angle about the fitted axis minus the given angle, degrees.
+    /// The angle about the fitted axis that best fits its corners (the fitted board turned
+    /// alone) minus the given angle, degrees.
     pub angle_residual_deg: f64,
     /// RMS reprojection error of its corners under the joint fit, pixels.
     pub rms_px: f64,
@@ -165,7 +166,8 @@ pub fn calibrate_turntable(
         .map(|(((path, angle_deg), ob), r)| {
             let rel = ob.pose.rotation * base.rotation.inverse();
             let v = rel.scaled_axis();
-            let measured = v.norm() * v.dot(&d).signum();
+            let from_pnp = v.norm() * v.dot(&d).signum();
+            let measured = fit.image_angle(&x, ob, from_pnp);
             let diff = (measured.to_degrees() - angle_deg + 180.0).rem_euclid(360.0) - 180.0;
             TurntableView {
                 path,
@@ -283,6 +285,38 @@ impl Fit<'_> {
             }
         }
         r
+    }
+
+    /// The angle (radians) about the fitted axis at which the fitted board (parameters `x`)
+    /// best fits `o`'s corners: Newton's method on the reprojection error from `start` (the
+    /// image's own PnP pose's angle), with central differences.
+    fn image_angle(&self, x: &DVector<f64>, o: &Observation, start: f64) -> f64 {
+        let (d, c, base) = self.params(x);
+        let cost = |theta: f64| -> f64 {
+            let pose = about_axis(&d, &c, theta) * base;
+            self.object
+                .iter()
+                .zip(&o.corners)
+                .map(|(p, q)| match self.camera.project(&(pose * p)) {
+                    Some(u) => (u - q).norm_squared(),
+                    None => 1e12,
+                })
+                .sum()
+        };
+        let (mut theta, h) = (start, 1e-5);
+        for _ in 0..20 {
+            let (lo, mid, hi) = (cost(theta - h), cost(theta), cost(theta + h));
+            let (g, curv) = ((hi - lo) / (2.0 * h), (hi - 2.0 * mid + lo) / (h * h));
+            if curv.is_nan() || curv <= 0.0 {
+                break;
+            }
+            let step = (-g / curv).clamp(-0.05, 0.05);
+            theta += step;
+            if step.abs() < 1e-9 {
+                break;
+            }
+        }
+        theta
     }
 
     /// Levenberg–Marquardt with central-difference Jacobians.

@@ -44,6 +44,18 @@ pub struct CalibratedBenchArgs {
     /// The preset of both reconstructions.
     #[arg(long, value_enum, default_value_t = Preset::Balanced)]
     pub preset: Preset,
+    /// Camera image size, WIDTHxHEIGHT pixels.
+    #[arg(long, default_value = "1280x960", value_parser = super::common::parse_size)]
+    pub size: (u32, u32),
+    /// Share of the image height the object fills.
+    #[arg(long, default_value_t = 0.6, value_parser = super::common::positive_share)]
+    pub fill: f64,
+    /// Square side of the printed camera board, mm (default: sized with the rig).
+    #[arg(long = "square-mm", value_parser = super::common::positive)]
+    pub square_mm: Option<f64>,
+    /// Square side of the board standing on the turntable, mm (default: --square-mm).
+    #[arg(long = "turntable-square-mm", value_parser = super::common::positive)]
+    pub turntable_square_mm: Option<f64>,
 }
 
 #[derive(Args, Debug)]
@@ -181,6 +193,17 @@ fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
         work: a.work.clone(),
         objects: a.objects.clone(),
         preset: a.preset,
+        rig: crate::bench::reconstruct::Rig {
+            width: a.size.0,
+            height: a.size.1,
+            fill: a.fill,
+            large_monitor: false,
+        },
+        boards: crate::simulate::calibration::CalibrationBoards {
+            camera_square_mm: a.square_mm,
+            turntable_square_mm: a.turntable_square_mm,
+            ..Default::default()
+        },
     };
     let bars = super::common::StageBars::new();
     let log = |s: &str| bars.bar.suspend(|| eprintln!("{s}"));

@@ -194,8 +194,15 @@ fn screen(a: &ScreenArgs) -> Result<()> {
                 "give the monitor's pixel pitch with --pitch-mm (no screen file to take it from)"
             })?,
     };
-    let cal = screen::from_background(&a.scan, &config, &camera, pitch_mm)?;
     let out = a.output.clone().unwrap_or(screen_file);
+    ensure_extension(&out, "--output", &["yml", "yaml"])?;
+    let inputs = [
+        a.scan.join("scan.toml"),
+        a.scan.join(&config.calibration.camera),
+        crate::scan::background_dir(&a.scan),
+    ];
+    ensure_output_spares_inputs(&out, "--output", &inputs)?;
+    let cal = screen::from_background(&a.scan, &config, &camera, pitch_mm)?;
     calib_io::write_screen(&out, &cal.screen)?;
     let t = cal.screen.pose.translation.vector;
     let n = cal.screen.pose.rotation * nalgebra::Vector3::z();

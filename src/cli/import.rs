@@ -58,6 +58,9 @@ pub fn run(a: &ImportDrtArgs) -> Result<()> {
         100.0 * r.rays as f64 / r.object_pixels.max(1) as f64,
         r.plane_rms_mm
     );
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
+    }
     if r.camera == DrtCamera::PointGrey {
         outln!(
             "per-pixel ray origins within {:.3} mm of their view's camera centre",

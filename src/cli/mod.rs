@@ -48,6 +48,9 @@ struct Cli {
     /// before anything is allocated (default: 3/4 of the machine's memory).
     #[arg(long = "max-memory-gb", global = true, value_parser = common::positive)]
     max_memory_gb: Option<f64>,
+    /// Also show OpenCV's own log lines (warnings, information), silenced otherwise.
+    #[arg(long, global = true)]
+    verbose: bool,
 }
 
 #[derive(Subcommand, Debug)]
@@ -105,6 +108,10 @@ pub fn is_broken_pipe(e: &anyhow::Error) -> bool {
 pub fn run() -> Result<()> {
     let matches = Cli::command().long_version(long_version()).get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    // glasscan's own words only: OpenCV's `[ WARN:…]` lines would stand before its errors.
+    if !cli.verbose {
+        opencv::core::set_log_level(opencv::core::LogLevel::LOG_LEVEL_SILENT)?;
+    }
     if let Some(gb) = cli.max_memory_gb {
         crate::util::budget::set_limit_gb(gb).map_err(anyhow::Error::msg)?;
     }

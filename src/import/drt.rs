@@ -27,13 +27,14 @@ use crate::rig::{Camera, Screen};
 use crate::scan::decoded::ViewSummary;
 use crate::scan::decoded::{mask_path, rays_path, write_rays, write_summary, PixelRay};
 use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
-use crate::util::fixed::FixedPoint;
+use crate::util::fixed::{FixedPoint, MAX_SIDE_PX};
 use crate::util::folder::{StagedFolder, FORCE_HINT};
 use crate::util::image::write_pixels;
 
 /// DRT's view count.
 pub const DRT_VIEWS: usize = 72;
-/// Pixel pitch of the virtual monitor, mm.
+/// Pixel pitch of the virtual monitor, mm, where its sides fit in [`MAX_SIDE_PX`] pixels; a wider
+/// spread of targets gets the smallest pitch (in steps of 0.05 mm) that fits.
 const VIRTUAL_PITCH_MM: f64 = 0.25;
 
 /// Which of DRT's cameras made the file.
@@ -58,6 +59,10 @@ pub struct ImportReport {
     pub plane_rms_mm: f64,
     /// Largest distance of a file's ray origin from its view's camera centre, mm (Point Grey).
     pub max_origin_offset_mm: f64,
+    /// The virtual monitor's pixel pitch, mm.
+    pub pitch_mm: f64,
+    /// What looks wrong in the file but does not stop the import.
+    pub warnings: Vec<String>,
 }
 
 /// The file's datasets, checked.
@@ -241,7 +246,9 @@ fn import_into(
     let screen = virtual_screen(&decoded, fit.n, &fit.sum, &fit.outer)?;
     let plane_rms_mm = plane_rms(&decoded, &screen)?;
     let poses = views.iter().map(|v| v.pose).collect();
-    imported_scan(out, ior, cam, screen.clone(), poses)?.save()?;
+    let scan = imported_scan(out, ior, cam, screen.clone(), poses)?;
+    let warnings = monitor_in_front(&scan).into_iter().collect();
+    scan.save()?;
     let summaries: Vec<ViewSummary> = views.iter().map(|v| v.summary.clone()).collect();
     write_summary(
         &decoded,
@@ -256,6 +263,22 @@ fn import_into(
         rays: views.iter().map(|v| v.rays).sum(),
         plane_rms_mm,
         max_origin_offset_mm: views.iter().map(|v| v.max_origin).fold(0.0, f64::max),
+        pitch_mm: screen.pitch_mm,
+        warnings,
+    })
+}
+
+/// A warning when the monitor plane fitted to the targets passes between the camera and the
+/// turntable axis: the rays would meet their targets before the object, so the file's targets
+/// are likely not on the monitor behind it (another frame or unit).
+fn monitor_in_front(scan: &Scan) -> Option<String> {
+    let s = &scan.screen;
+    let n = s.pose.rotation * Vector3::z();
+    let depth = n.dot(&(scan.turntable.axis_point.coords - s.pose.translation.vector));
+    (depth > 0.0).then(|| {
+        format!(
+            "the monitor plane fitted to the file's targets lies {depth:.0} mm in front of the turntable axis (between the camera and the object): check that screen_position holds points on the monitor behind the object, camera frame, mm"
+        )
     })
 }
 
@@ -476,13 +499,22 @@ fn virtual_screen(
         }
     })?;
     let origin = centroid + x * lo[0] + y * lo[1];
-    let size = |a: usize| ((hi[a] - lo[a]) / VIRTUAL_PITCH_MM).ceil() as u32 + 1;
+    let pitch = virtual_pitch_mm((hi[0] - lo[0]).max(hi[1] - lo[1]));
+    let size = |a: usize| ((hi[a] - lo[a]) / pitch).ceil() as u32 + 1;
     Ok(Screen {
         width_px: size(0),
         height_px: size(1),
-        pitch_mm: VIRTUAL_PITCH_MM,
+        pitch_mm: pitch,
         pose: Isometry3::from_parts(Translation3::from(origin), rot),
     })
+}
+
+/// The virtual monitor's pitch for targets spread over `extent_mm` along its longer side:
+/// [`VIRTUAL_PITCH_MM`], or the smallest multiple of 0.05 mm that keeps the side within
+/// [`MAX_SIDE_PX`] pixels.
+fn virtual_pitch_mm(extent_mm: f64) -> f64 {
+    let fits = extent_mm / f64::from(MAX_SIDE_PX - 2);
+    VIRTUAL_PITCH_MM.max((fits / 0.05).ceil() * 0.05)
 }
 
 /// RMS distance of the targets from the screen's plane, mm.
@@ -505,4 +537,18 @@ fn for_each_target(decoded: &Path, mut f: impl FnMut(Point3<f64>)) -> Result<()>
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_virtual_monitor_fits_its_largest_side() {
+        assert_eq!(virtual_pitch_mm(400.0), VIRTUAL_PITCH_MM);
+        // A sphere's grazing exits spread 5.8 m: 23,125 pixels at 0.25 mm.
+        let p = virtual_pitch_mm(5781.0);
+        assert!(p > VIRTUAL_PITCH_MM && ((5781.0 / p).ceil() as u32) < MAX_SIDE_PX);
+        assert!(((p / 0.05).round() * 0.05 - p).abs() < 1e-12, "{p}");
+    }
 }

@@ -185,7 +185,10 @@ impl ScanConfig {
                 angles.len()
             )));
         }
-        if let Some(a) = angles.iter().find(|a| a.is_nan() || a.abs() > MAX_ANGLE_DEG) {
+        if let Some(a) = angles
+            .iter()
+            .find(|a| a.is_nan() || a.abs() > MAX_ANGLE_DEG)
+        {
             return Err(bad(format!(
                 "views.angles_deg holds {}: turntable angles are degrees within ±{MAX_ANGLE_DEG}",
                 crate::util::short_number(*a)

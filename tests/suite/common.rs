@@ -9,6 +9,7 @@ use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::sync::{Mutex, MutexGuard};
+use std::time::Duration;
 
 use glasscan::mesh::TriMesh;
 use glasscan::simulate::{simulate, SimulateOptions};
@@ -118,4 +119,52 @@ pub fn decoded_scan_with_normals(
     };
     simulate(mesh, dir, &opts, |_| ()).expect("simulate a small scan");
     dir.to_path_buf()
+}
+
+/// Every file below `dir` with its bytes, by relative path.
+pub fn snapshot(dir: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.insert(
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                );
+            }
+        }
+    }
+    out
+}
+
+/// Runs `args` to its end `kills` times, each time killed (SIGKILL) after a delay drawn from
+/// 0..`span` by `seed`, then once uninterrupted: that run must succeed, and no temporary of the
+/// output `out` (`.NAME.glasscan-*`, its lock) may be left beside it.
+pub fn killed_then_rerun(args: &[&str], out: &Path, kills: usize, span: Duration, seed: u64) {
+    use rand::{RngExt, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    for _ in 0..kills {
+        let mut child = spawn(
+            glasscan_cmd()
+                .args(args)
+                .stdout(Stdio::null())
+                .stderr(Stdio::null()),
+        );
+        std::thread::sleep(span.mul_f64(rng.random_range(0.0..1.0)));
+        let _ = child.kill();
+        child.wait().unwrap();
+    }
+    let o = glasscan(args);
+    assert!(o.status.success(), "rerun of {args:?}: {}", stderr(&o));
+    let name = out.file_name().unwrap().to_string_lossy().into_owned();
+    let left: Vec<String> = std::fs::read_dir(out.parent().unwrap())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(&format!(".{name}.glasscan")))
+        .collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
 }

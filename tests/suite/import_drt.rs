@@ -2,8 +2,8 @@
 //! 0/1 and 0/255 masks) import to the same reconstruction inputs as the scan they were exported
 //! from; bad files are clear errors; hull and reconstruct run on an import.
 
-use crate::common::{glasscan, hdf5_open, refused};
-use std::path::{Path, PathBuf};
+use crate::common::{glasscan, hdf5_open, killed_then_rerun, refused, snapshot};
+use std::path::Path;
 use std::process::Output;
 use std::sync::OnceLock;
 
@@ -374,26 +374,6 @@ fn bad_files_name_the_key_and_shape() {
     );
 }
 
-/// Every file below `dir` with its bytes, by relative path.
-fn snapshot(dir: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
-    let mut out = std::collections::BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.insert(
-                    p.strip_prefix(dir).unwrap().to_path_buf(),
-                    std::fs::read(&p).unwrap(),
-                );
-            }
-        }
-    }
-    out
-}
-
 /// A failed import over an earlier one (even with --force) leaves it byte-identical, and a
 /// non-empty folder is refused without --force.
 #[test]
@@ -470,4 +450,26 @@ fn a_declared_size_beyond_the_memory_limit_is_refused() {
     assert!(std::fs::metadata(&file).unwrap().len() < 1 << 20);
     let o = import(&file, &tmp.path().join("out"), &[]);
     refused(&o, "more than the limit");
+}
+
+/// `import-drt --force` killed at seeded random instants, then run again: the rerun succeeds
+/// and no temporary folder or lock is left beside the scan.
+#[test]
+fn an_import_killed_anywhere_is_put_right_by_the_next() {
+    let (_d, src) = source();
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("drt.h5");
+    export_drt(src, &file, POINT_GREY);
+    let out = tmp.path().join("S");
+    let args = [
+        "import-drt",
+        file.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--force",
+    ];
+    let t0 = std::time::Instant::now();
+    assert!(glasscan(&args).status.success());
+    killed_then_rerun(&args, &out, 6, t0.elapsed(), 43);
+    assert!(Scan::open(&out).is_ok());
 }

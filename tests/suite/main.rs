@@ -18,6 +18,7 @@ mod import_drt;
 mod layering;
 mod mesh_io;
 mod mesh_validate;
+mod nothing_lost;
 mod readme;
 mod reconstruct;
 mod refraction;
