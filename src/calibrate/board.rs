@@ -1,5 +1,6 @@
 //! Chessboard images: listing them, finding the board's inner corners (OpenCV, refined to
-//! sub-pixel), and the corners' positions on the board.
+//! sub-pixel), and the corners' positions on the board. Why the steps are what they are:
+//! docs/decisions.md#board-corners-and-the-fits-limits.
 //!
 //! Board frame: origin at the first inner corner, x along the `cols` corners of a row, y along
 //! the rows, z = x × y (into the board as the camera sees it), mm. The first corner is the one
