@@ -6,7 +6,7 @@
 DEBIAN_PACKAGES := libembree-dev libopencv-dev libopencv-contrib-dev libhdf5-dev clang libclang-dev cmake pkg-config fonts-dejavu-core
 CARGO ?= cargo
 
-.PHONY: deps demo test test-embree4 lint fuzz bench bench-remesh bench-simulate clean
+.PHONY: deps demo test test-embree4 lint lib-check fuzz bench bench-remesh bench-simulate clean
 
 # Installs missing Debian packages when run as root; otherwise prints the exact command and stops.
 deps:
@@ -58,6 +58,16 @@ fuzz: deps
 lint:
 	$(CARGO) fmt --check
 	$(CARGO) clippy --release --all-targets -- -D warnings
+
+# The library alone builds without the command line, HDF5 and live capture, and then depends on
+# none of clap, indicatif, ctrlc, hdf5 or OpenCV's highgui and videoio.
+lib-check: deps
+	$(CARGO) build --release --lib --no-default-features
+	@if $(CARGO) tree --no-default-features -e normal | grep -E ' (clap|indicatif|ctrlc|hdf5-metno|ndarray) '; then \
+	  echo "glasscan: the library without default features depends on the crates above"; exit 1; fi
+	@if $(CARGO) tree --no-default-features -e features -i opencv | grep -E 'highgui|videoio'; then \
+	  echo "glasscan: the library without default features builds OpenCV's highgui or videoio"; exit 1; fi
+	@echo "glasscan: the library builds alone"
 
 # Embree throughput on a mesh: make bench MESH=../shared/meshes/pig_scan.ply
 MESH ?= ../shared/meshes/pig_scan.ply

@@ -1,18 +1,20 @@
 //! glasscan: reconstruct the mesh of a solid transparent object from a turntable scan in front of
 //! a monitor showing Gray-code patterns (differentiable refraction tracing, Lyu et al. 2020).
 //!
-//! Units: millimetres in 3D, pixels in images. The binary (`src/main.rs`) is a thin CLI over
-//! [`cli`]; every stage lives in its own module.
+//! Units: millimetres in 3D, pixels in images. Every stage lives in its own module; the
+//! pipeline's entry point is [`reconstruct::pipeline::reconstruct_scan`]. The command line
+//! (`src/main.rs` and `src/cli/`, feature `cli`) is a thin layer over this library.
 
 #![deny(unsafe_code)]
 
 pub mod bench;
 pub mod calibrate;
+#[cfg(feature = "capture")]
 pub mod capture;
-pub mod cli;
 pub mod decode;
 pub mod eval;
 pub mod hull;
+#[cfg(feature = "hdf5")]
 pub mod import;
 pub mod loss;
 pub mod mesh;

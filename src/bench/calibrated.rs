@@ -21,13 +21,12 @@ use anyhow::{Context, Result};
 use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
-use super::reconstruct::{Rig, ScanKind, SCAN_VIEWS};
+use super::reconstruct::{Rig, ScanKind};
 use super::ObjectMesh;
 use crate::calibrate::board::{read_images, Board};
 use crate::calibrate::camera::{calibrate_camera, CameraOptions};
 use crate::calibrate::screen;
 use crate::calibrate::turntable::calibrate_turntable;
-use crate::decode::{decode_scan, DecodeOptions};
 use crate::eval::EvalReport;
 use crate::hull::HullOptions;
 use crate::mesh::io::{read_mesh, write_mesh};
@@ -37,7 +36,7 @@ use crate::reconstruct::{Existing, Progress, Start};
 use crate::rig::{calib_io, Camera, Screen};
 use crate::scan::Scan;
 use crate::simulate::calibration::{CalibrationBoards, Setup};
-use crate::simulate::simulate;
+use crate::simulate::simulated_scan;
 
 /// The lens of the simulated camera, OpenCV's k1 k2 p1 p2 k3: barrel distortion of about 2 % at
 /// the image corners of the default 1280×960 camera.
@@ -211,10 +210,7 @@ fn ensure_scan(
         dir.display()
     ));
     let t0 = Instant::now();
-    simulate(&mesh, dir, &options, |_| ())?;
-    let scan = Scan::open(dir)?;
-    let views: Vec<usize> = (0..SCAN_VIEWS).collect();
-    decode_scan(&scan, &views, &DecodeOptions::default(), |_| ())?;
+    simulated_scan(&mesh, dir, &options, |_| ())?;
     log(&format!("  {:.1} s", t0.elapsed().as_secs_f64()));
     Ok(())
 }

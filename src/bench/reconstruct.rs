@@ -18,7 +18,6 @@ use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
 use super::ObjectMesh;
-use crate::decode::{decode_scan, DecodeOptions};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::hull::{visual_hull, HullOptions};
 use crate::mesh::io::read_mesh;
@@ -29,10 +28,11 @@ use crate::reconstruct::plot::time_accuracy_plot;
 use crate::reconstruct::validation::best_stage;
 use crate::reconstruct::{self, stage_path, Existing, Progress, Start};
 use crate::scan::Scan;
-use crate::simulate::{monitor_covers, simulate, SimulateOptions, Transport};
+use crate::simulate::{monitor_covers, simulated_scan, SimulateOptions, Transport};
 
 /// The scans the benchmark simulates, 72 views each.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum ScanKind {
     /// Decoded-only: exact correspondences from the simulator, no captures.
@@ -343,12 +343,7 @@ fn ensure_scan(
         normals: object.normals(),
         ..kind.simulate_options(rig)
     };
-    simulate(&mesh, dir, &opts, |_| ())?;
-    if kind != ScanKind::Exact {
-        let scan = Scan::open(dir)?;
-        let views: Vec<usize> = (0..SCAN_VIEWS).collect();
-        decode_scan(&scan, &views, &DecodeOptions::default(), |_| ())?;
-    }
+    simulated_scan(&mesh, dir, &opts, |_| ())?;
     if kind == ScanKind::PhysicalTrueMasks {
         use_true_masks(dir)?;
     }
@@ -435,7 +430,7 @@ fn run_one(
     let (hull, _) = visual_hull(
         &inputs.silhouettes,
         &HullOptions::default(),
-        &indicatif::ProgressBar::hidden(),
+        &crate::util::progress::Silent,
     )?;
     let seconds_hull = t0.elapsed().as_secs_f64();
     let stop = stop_after(budget.map(|b| b - seconds_hull));
@@ -448,11 +443,11 @@ fn run_one(
         existing: Existing::Nothing,
     };
     // A run cut at the budget ends after a stage's commit; the stages it finished are read back.
-    let ck = reconstruct_scan(job, progress, &stop)?.finished.checkpoint;
+    let checkpoint = reconstruct_scan(job, progress, &stop)?.checkpoint;
     let (curve, within, seconds) =
-        stage_curve(&hull, truth, seconds_hull, &ck.stages, budget, dir)?;
+        stage_curve(&hull, truth, seconds_hull, &checkpoint.stages, budget, dir)?;
     // The result is the stage within the budget that fits the held-out views best.
-    let s = best_stage(&ck.stages, settings.warmup_stages, within)
+    let s = best_stage(&checkpoint.stages, settings.warmup_stages, within)
         .context("the run finished no stage")?;
     let mesh = read_mesh(&stage_path(dir, s))?;
     let e: EvalReport = evaluate(&mesh, truth, &EvalOptions::default())?;

@@ -9,7 +9,7 @@ pub mod turntable;
 
 use anyhow::Result;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Point2d, Point3d, Vector, CV_64F};
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, CV_64F};
 
 use crate::rig::{Camera, Screen};
 
@@ -84,32 +84,4 @@ pub fn pose_from_vectors(rvec: &Mat, tvec: &Mat) -> Result<Isometry3<f64>> {
         Translation3::new(t[0], t[1], t[2]),
         UnitQuaternion::from_scaled_axis(Vector3::new(r[0], r[1], r[2])),
     ))
-}
-
-/// RMS distance (pixels) between `image` and `object` projected with the pose and camera.
-pub fn reprojection_rms(
-    object: &Vector<Point3d>,
-    image: &Vector<Point2d>,
-    rvec: &Mat,
-    tvec: &Mat,
-    k: &Mat,
-    dist: &Mat,
-) -> Result<f64> {
-    let mut projected = Vector::<Point2d>::new();
-    opencv::calib3d::project_points(
-        object,
-        rvec,
-        tvec,
-        k,
-        dist,
-        &mut projected,
-        &mut opencv::core::no_array(),
-        0.0,
-    )?;
-    let sum: f64 = projected
-        .iter()
-        .zip(image.iter())
-        .map(|(p, q)| (p.x - q.x).powi(2) + (p.y - q.y).powi(2))
-        .sum();
-    Ok((sum / image.len().max(1) as f64).sqrt())
 }

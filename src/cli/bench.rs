@@ -5,14 +5,14 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 
-use crate::bench::reconstruct::ScanKind;
-use crate::bench::trace::{self, TraceBenchOptions, TraceBenchReport};
-use crate::loss::refraction::{ResidualForm, MAX_FOOTPRINT};
-use crate::loss::Robust;
-use crate::mesh::io::read_mesh;
-use crate::mesh::shapes;
-use crate::reconstruct::config::Preset;
-use crate::trace::path::NormalModel;
+use glasscan::bench::reconstruct::ScanKind;
+use glasscan::bench::trace::{self, TraceBenchOptions, TraceBenchReport};
+use glasscan::loss::refraction::{ResidualForm, MAX_FOOTPRINT};
+use glasscan::loss::Robust;
+use glasscan::mesh::io::read_mesh;
+use glasscan::mesh::shapes;
+use glasscan::reconstruct::config::Preset;
+use glasscan::trace::path::NormalModel;
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCommand {
@@ -32,7 +32,7 @@ pub enum BenchCommand {
 #[derive(Args, Debug)]
 pub struct CalibratedBenchArgs {
     /// Folder with the {object}_scan.ply meshes.
-    #[arg(long, default_value = "../shared/meshes")]
+    #[arg(long)]
     pub meshes: PathBuf,
     /// Scans, runs, calibrated.json and calibrated.md go here; a rerun skips the objects
     /// calibrated.json already holds.
@@ -60,8 +60,8 @@ pub struct CalibratedBenchArgs {
 
 #[derive(Args, Debug)]
 pub struct ReconstructBenchArgs {
-    /// Folder with the {object}_scan.ply meshes.
-    #[arg(long, default_value = "../shared/meshes")]
+    /// Folder with the {object}_scan.ply meshes (not needed for the built-in objects).
+    #[arg(long, default_value = "")]
     pub meshes: PathBuf,
     /// Scans, runs, results.json, results.md and time_vs_accuracy.png go here; a rerun skips
     /// the runs results.json already holds.
@@ -137,7 +137,7 @@ pub struct GradientArgs {
 #[derive(Args, Debug)]
 pub struct RemeshBenchArgs {
     /// Folder with the *_scan.ply and *_vh.ply meshes.
-    #[arg(long, default_value = "../shared/meshes")]
+    #[arg(long)]
     pub meshes: PathBuf,
     /// Target edge lengths, mm, comma-separated.
     #[arg(long = "edge-mm", value_delimiter = ',', default_value = "1,2,5")]
@@ -187,19 +187,19 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
 }
 
 fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
-    use crate::bench::calibrated::{run_calibrated_bench, CalibratedBenchOptions};
+    use glasscan::bench::calibrated::{run_calibrated_bench, CalibratedBenchOptions};
     let o = CalibratedBenchOptions {
         meshes: a.meshes.clone(),
         work: a.work.clone(),
         objects: a.objects.clone(),
         preset: a.preset,
-        rig: crate::bench::reconstruct::Rig {
+        rig: glasscan::bench::reconstruct::Rig {
             width: a.size.0,
             height: a.size.1,
             fill: a.fill,
             large_monitor: false,
         },
-        boards: crate::simulate::calibration::CalibrationBoards {
+        boards: glasscan::simulate::calibration::CalibrationBoards {
             camera_square_mm: a.square_mm,
             turntable_square_mm: a.turntable_square_mm,
             ..Default::default()
@@ -215,7 +215,7 @@ fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
 }
 
 fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
-    use crate::bench::reconstruct::{run_bench, BenchOptions, Rig};
+    use glasscan::bench::reconstruct::{run_bench, BenchOptions, Rig};
     let o = BenchOptions {
         meshes: a.meshes.clone(),
         work: a.work.clone(),
@@ -244,12 +244,12 @@ fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
 }
 
 fn run_gradient(a: &GradientArgs) -> Result<()> {
-    use crate::loss::refraction::RefractionSettings;
-    if !(2..=crate::trace::path::MAX_TRAIL as u32).contains(&a.max_refractions) {
+    use glasscan::loss::refraction::RefractionSettings;
+    if !(2..=glasscan::trace::path::MAX_TRAIL as u32).contains(&a.max_refractions) {
         anyhow::bail!(
             "--max-refractions {}: it must lie in 2..={}",
             a.max_refractions,
-            crate::trace::path::MAX_TRAIL
+            glasscan::trace::path::MAX_TRAIL
         );
     }
     let scan = super::common::open_scan(&a.scan)?;
@@ -259,14 +259,15 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         .clone()
         .unwrap_or_else(|| a.scan.join("ground_truth.ply"));
     let mesh = read_mesh(&mesh_path)?;
-    crate::mesh::validate::ensure_valid(&mesh)
+    glasscan::mesh::validate::ensure_valid(&mesh)
         .map_err(|e| anyhow::anyhow!("{}: {e}", mesh_path.display()))?;
     let t0 = std::time::Instant::now();
-    let (targets, skipped) = crate::loss::targets::scan_targets(&scan, &views, Default::default())?;
+    let (targets, skipped) =
+        glasscan::loss::targets::scan_targets(&scan, &views, Default::default())?;
     let load_s = t0.elapsed().as_secs_f64();
     let s = RefractionSettings {
         ior: scan.config.ior,
-        ior_air: crate::trace::refract::IOR_AIR,
+        ior_air: glasscan::trace::refract::IOR_AIR,
         max_refractions: a.max_refractions,
         normals: a.normals,
         form: a.form,
@@ -285,7 +286,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         skipped.len()
     );
     let bar = super::common::bar("bench gradient", a.repeats.max(1));
-    let r = crate::bench::gradient::run(&mesh, &targets, &s, a.repeats, |i| {
+    let r = glasscan::bench::gradient::run(&mesh, &targets, &s, a.repeats, |i| {
         bar.set_position(i as u64)
     })?;
     bar.finish_and_clear();
@@ -362,7 +363,7 @@ fn run_trace(a: &TraceArgs) -> Result<()> {
 pub fn table(r: &TraceBenchReport, width: u32, height: u32) -> String {
     let mut s = format!(
         "Embree {} · {} faces · {width}×{height} view\n",
-        crate::trace::embree_version(),
+        glasscan::trace::embree_version(),
         r.faces
     );
     s += &format!(
@@ -426,7 +427,7 @@ pub fn table(r: &TraceBenchReport, width: u32, height: u32) -> String {
 
 fn run_remesh(a: &RemeshBenchArgs) -> Result<()> {
     use super::remesh::{header, row};
-    use crate::bench::remesh;
+    use glasscan::bench::remesh;
     let cases = remesh::cases(&a.meshes, &a.edges_mm)?;
     match &a.python {
         Some(py) => eprintln!(

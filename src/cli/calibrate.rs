@@ -6,13 +6,13 @@ use super::common::bar;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 
-use crate::calibrate::board::{read_images, Board};
-use crate::calibrate::camera::{calibrate_camera, CameraOptions};
-use crate::calibrate::screen;
-use crate::calibrate::turntable::calibrate_turntable;
-use crate::rig::calib_io;
-use crate::scan::ScanConfig;
-use crate::util::paths::{ensure_extension, ensure_output_spares_inputs};
+use glasscan::calibrate::board::{read_images, Board};
+use glasscan::calibrate::camera::{calibrate_camera, CameraOptions};
+use glasscan::calibrate::screen;
+use glasscan::calibrate::turntable::calibrate_turntable;
+use glasscan::rig::calib_io;
+use glasscan::scan::ScanConfig;
+use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
 #[derive(Subcommand, Debug)]
 pub enum CalibrateCommand {
@@ -127,7 +127,7 @@ fn check_fit(problem: Option<String>, force: bool, what: &str) -> Result<()> {
 }
 
 /// The image files of a board set: inputs that no output may overwrite.
-fn image_paths(images: &[crate::calibrate::board::BoardImage]) -> Vec<&std::path::Path> {
+fn image_paths(images: &[glasscan::calibrate::board::BoardImage]) -> Vec<&std::path::Path> {
     images.iter().map(|i| i.path.as_path()).collect()
 }
 
@@ -199,7 +199,7 @@ fn screen(a: &ScreenArgs) -> Result<()> {
     let inputs = [
         a.scan.join("scan.toml"),
         a.scan.join(&config.calibration.camera),
-        crate::scan::background_dir(&a.scan),
+        glasscan::scan::background_dir(&a.scan),
     ];
     ensure_output_spares_inputs(&out, "--output", &inputs)?;
     let cal = screen::from_background(&a.scan, &config, &camera, pitch_mm)?;
@@ -269,7 +269,7 @@ fn turntable(a: &TurntableArgs) -> Result<()> {
             v.path.display()
         );
     }
-    let behind = screen.and_then(|s| crate::calibrate::axis_beyond_monitor(&cal.axis_point, &s));
+    let behind = screen.and_then(|s| glasscan::calibrate::axis_beyond_monitor(&cal.axis_point, &s));
     check_fit(cal.problem().or(behind), a.force, "turntable")?;
     calib_io::write_turntable_axis(&a.output, &cal.axis_point, &cal.axis_dir)?;
     let (p, d) = (cal.axis_point, cal.axis_dir);

@@ -7,9 +7,9 @@ use anyhow::Result;
 use clap::Args;
 
 use super::common::bar;
-use crate::capture::{capture_scan, CameraSource, CaptureOptions};
-use crate::rig::calib_io;
-use crate::scan::ScanConfig;
+use glasscan::capture::{capture_scan, CameraSource, CaptureOptions};
+use glasscan::rig::calib_io;
+use glasscan::scan::ScanConfig;
 
 #[derive(Args, Debug)]
 pub struct CaptureArgs {

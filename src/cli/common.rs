@@ -2,11 +2,12 @@
 //! and progress bars.
 
 use anyhow::{bail, Result};
+use glasscan::util::progress::StepProgress;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::loss::Robust;
-use crate::reconstruct::{IterationRecord, Progress, StageReport};
-use crate::util::fixed::MAX_SIDE_PX;
+use glasscan::loss::Robust;
+use glasscan::reconstruct::{IterationRecord, Progress, StageReport};
+use glasscan::util::fixed::MAX_SIDE_PX;
 
 /// Parses "0-9,12" (or "all", or nothing) into sorted view indices below `count`.
 pub fn parse_views(spec: Option<&str>, count: usize) -> Result<Vec<usize>> {
@@ -53,8 +54,8 @@ pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
 }
 
 /// Opens a scan folder and prints the rig's plausibility warnings.
-pub fn open_scan(dir: &std::path::Path) -> Result<crate::scan::Scan> {
-    let scan = crate::scan::Scan::open(dir)?;
+pub fn open_scan(dir: &std::path::Path) -> Result<glasscan::scan::Scan> {
+    let scan = glasscan::scan::Scan::open(dir)?;
     for w in scan.plausibility_warnings() {
         eprintln!("warning: {w}");
     }
@@ -77,7 +78,7 @@ pub fn positive(s: &str) -> Result<f64, String> {
     } else {
         Err(format!(
             "{}: it must be positive",
-            crate::util::short_number(v)
+            glasscan::util::short_number(v)
         ))
     }
 }
@@ -90,7 +91,7 @@ pub fn non_negative(s: &str) -> Result<f64, String> {
     } else {
         Err(format!(
             "{}: it must not be negative",
-            crate::util::short_number(v)
+            glasscan::util::short_number(v)
         ))
     }
 }
@@ -103,7 +104,7 @@ pub fn share(s: &str) -> Result<f64, String> {
     } else {
         Err(format!(
             "{}: it must lie in [0, 1]",
-            crate::util::short_number(v)
+            glasscan::util::short_number(v)
         ))
     }
 }
@@ -130,7 +131,7 @@ pub fn positive_share(s: &str) -> Result<f64, String> {
     } else {
         Err(format!(
             "{}: it must lie in (0, 1]",
-            crate::util::short_number(v)
+            glasscan::util::short_number(v)
         ))
     }
 }
@@ -138,13 +139,13 @@ pub fn positive_share(s: &str) -> Result<f64, String> {
 /// A solid object's refractive index: above 1 (air) and at most 4 (beyond any clear solid).
 pub fn ior(s: &str) -> Result<f64, String> {
     let v = finite(s)?;
-    let max = crate::scan::MAX_IOR;
+    let max = glasscan::scan::MAX_IOR;
     if v > 1.0 && v <= max {
         Ok(v)
     } else {
         Err(format!(
             "{}: a solid transparent object's refractive index lies in (1, {max}] (glass ≈ 1.5)",
-            crate::util::short_number(v)
+            glasscan::util::short_number(v)
         ))
     }
 }
@@ -174,7 +175,7 @@ pub fn auto_or_open_share(s: &str) -> Result<AutoShare, String> {
     } else {
         Err(format!(
             "{}: it must lie in (0, 1), or be auto",
-            crate::util::short_number(v)
+            glasscan::util::short_number(v)
         ))
     }
 }
@@ -187,6 +188,23 @@ pub fn bar(what: &str, len: usize) -> ProgressBar {
         ))
         .expect("a valid template"),
     )
+}
+
+/// A progress bar that draws the library's [`StepProgress`] reports: the phase as its message.
+pub struct Bar(pub ProgressBar);
+
+impl StepProgress for Bar {
+    fn phase(&self, name: &str, total: u64) {
+        self.0.set_message(name.to_string());
+        self.0.set_length(total);
+        self.0.set_position(0);
+    }
+    fn advance(&self, n: u64) {
+        self.0.inc(n);
+    }
+    fn grow(&self, more: u64) {
+        self.0.inc_length(more);
+    }
 }
 
 /// The progress of a reconstruction: a bar per stage (loss, ETA) and a line per finished stage.
@@ -240,8 +258,8 @@ impl Progress for StageBars {
                 r.last.refraction,
                 r.last.silhouette,
                 r.last.smoothness,
-                if r.last.unseen > 0.0 {
-                    format!(", unseen {:.3e} on {:.0} % of the vertices", r.last.unseen, 100.0 * r.unseen_share)
+                if r.last.membrane > 0.0 {
+                    format!(", membrane {:.3e} on the {:.0} % of the vertices no ray saw", r.last.membrane, 100.0 * r.unseen_share)
                 } else {
                     String::new()
                 },

@@ -8,9 +8,9 @@ use clap::Args;
 use super::common::{
     auto_or_open_share, bar, parse_views, positive_f32, share, share_f32, AutoShare,
 };
-use crate::decode::compare::{compare_view, Comparison};
-use crate::decode::mask::MaskOptions;
-use crate::decode::{decode_scan, DecodeOptions};
+use glasscan::decode::compare::{compare_view, Comparison};
+use glasscan::decode::mask::MaskOptions;
+use glasscan::decode::{decode_scan, DecodeOptions};
 
 #[derive(Args, Debug)]
 pub struct DecodeArgs {
@@ -97,8 +97,10 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         summaries.iter().filter(|s| s.warning.is_some()).count()
     );
     if a.compare {
-        let fixed =
-            crate::util::fixed::FixedPoint::for_screen(scan.screen.width_px, scan.screen.height_px);
+        let fixed = glasscan::util::fixed::FixedPoint::for_screen(
+            scan.screen.width_px,
+            scan.screen.height_px,
+        );
         let rows: Vec<Comparison> = summaries
             .iter()
             .filter(|s| s.warning.is_none())
@@ -146,7 +148,7 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
             100.0 * n as f64 / valid.max(1) as f64,
             100.0 * w(|c| c.within_1px_footprint),
             100.0 * w(|c| c.within_uncertainty_footprint),
-            crate::util::median(rows.iter().map(|c| c.median_error_footprint_px).collect())
+            glasscan::util::median(rows.iter().map(|c| c.median_error_footprint_px).collect())
         );
     }
     Ok(())

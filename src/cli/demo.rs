@@ -10,17 +10,16 @@ use anyhow::{Context, Result};
 use clap::Args;
 
 use super::common::StageBars;
-use crate::decode::{decode_scan, DecodeOptions};
-use crate::eval::{evaluate, EvalOptions, EvalReport};
-use crate::hull::HullOptions;
-use crate::mesh::io::{read_mesh, write_mesh};
-use crate::mesh::shapes::pebble;
-use crate::reconstruct::config::{Preset, Settings};
-use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
-use crate::reconstruct::{Existing, Start};
-use crate::scan::Scan;
-use crate::simulate::{simulate, SimulateOptions};
-use crate::util::folder::StagedFolder;
+use glasscan::eval::{evaluate, EvalOptions, EvalReport};
+use glasscan::hull::HullOptions;
+use glasscan::mesh::io::{read_mesh, write_mesh};
+use glasscan::mesh::shapes::pebble;
+use glasscan::reconstruct::config::{Preset, Settings};
+use glasscan::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
+use glasscan::reconstruct::{Existing, Start};
+use glasscan::scan::Scan;
+use glasscan::simulate::{simulated_scan, SimulateOptions};
+use glasscan::util::folder::StagedFolder;
 
 /// The file that marks a folder as the demo's own (the next demo may replace it).
 const DEMO_MARKER: &str = ".glasscan-demo";
@@ -69,7 +68,8 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     let object = pebble();
     write_mesh(&out.join("object.ply"), &object)?;
 
-    outln!("== 2. simulate a scan: 24 views, 640×480, 4 samples per pixel, Gray-code captures");
+    outln!("== 2. simulate a scan (24 views, 640×480, 4 samples per pixel, Gray-code captures)");
+    outln!("== 3. and decode its captures");
     let t = Instant::now();
     let scan_dir = out.join("scan");
     let sim = SimulateOptions {
@@ -80,14 +80,8 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         seed: args.seed,
         ..Default::default()
     };
-    simulate(&object, &scan_dir, &sim, |_| ())?;
-    outln!("   {:.1} s", t.elapsed().as_secs_f64());
-
-    outln!("== 3. decode the captures");
-    let t = Instant::now();
-    let scan = Scan::open(&scan_dir)?;
+    let scan = simulated_scan(&object, &scan_dir, &sim, |_| ())?;
     let views: Vec<usize> = (0..sim.views).collect();
-    decode_scan(&scan, &views, &DecodeOptions::default(), |_| ())?;
     outln!("   {:.1} s", t.elapsed().as_secs_f64());
 
     outln!("== 4. reconstruct: visual hull (1 mm voxels), then the fast preset");

@@ -5,11 +5,11 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::Args;
 
-use crate::eval::error_map::{write_error_map, ErrorScale};
-use crate::eval::{evaluate, EvalOptions, EvalReport};
-use crate::mesh::io::read_mesh;
-use crate::trace::{BuildMode, Device, Scene};
-use crate::util::paths::{ensure_extension, ensure_output_spares_inputs};
+use glasscan::eval::error_map::{write_error_map, ErrorScale};
+use glasscan::eval::{evaluate, EvalOptions, EvalReport};
+use glasscan::mesh::io::read_mesh;
+use glasscan::trace::{BuildMode, Device, Scene};
+use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
 #[derive(Args, Debug)]
 pub struct EvalArgs {

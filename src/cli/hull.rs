@@ -7,9 +7,9 @@ use anyhow::Result;
 use clap::Args;
 
 use super::common::{bar, parse_views, positive};
-use crate::hull::{silhouettes, visual_hull, HullOptions};
-use crate::mesh::io::write_mesh;
-use crate::util::paths::{ensure_extension, ensure_output_spares_inputs};
+use glasscan::hull::{silhouettes, visual_hull, HullOptions};
+use glasscan::mesh::io::write_mesh;
+use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
 #[derive(Args, Debug)]
 pub struct HullArgs {
@@ -65,7 +65,7 @@ pub fn run(a: &HullArgs) -> Result<()> {
         ..HullOptions::default()
     };
     let bar = bar("hull", 0);
-    let (mesh, mut report) = visual_hull(&sils, &o, &bar)?;
+    let (mesh, mut report) = visual_hull(&sils, &o, &super::common::Bar(bar.clone()))?;
     bar.finish_and_clear();
     report.seconds_silhouettes = seconds_silhouettes;
     report.warnings = warnings;

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 
-use crate::import::drt::{import_drt, DrtCamera, DRT_VIEWS};
-use crate::util::paths::ensure_output_spares_inputs;
+use glasscan::import::drt::{import_drt, DrtCamera, DRT_VIEWS};
+use glasscan::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]
 pub struct ImportDrtArgs {

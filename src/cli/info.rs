@@ -5,10 +5,10 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use clap::Args;
 
-use crate::mesh::io::read_mesh;
-use crate::mesh::validate::{validate, InvalidMesh, Report};
-use crate::mesh::{stats, TriMesh};
-use crate::trace::thickness::thickness_quantiles;
+use glasscan::mesh::io::read_mesh;
+use glasscan::mesh::validate::{validate, InvalidMesh, Report};
+use glasscan::mesh::{stats, TriMesh};
+use glasscan::trace::thickness::thickness_quantiles;
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
@@ -29,7 +29,7 @@ pub fn run(args: &InfoArgs) -> Result<()> {
     }
 }
 
-/// The local thickness line of a valid mesh (see [`crate::trace::thickness`]).
+/// The local thickness line of a valid mesh (see [`glasscan::trace::thickness`]).
 fn describe_thickness(mesh: &TriMesh) -> Result<String> {
     let q = thickness_quantiles(mesh, &[0.02, 0.5])?;
     let mm = |t: Option<f64>| t.unwrap_or(f64::NAN);

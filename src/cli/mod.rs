@@ -20,12 +20,14 @@ macro_rules! outln {
 
 mod bench;
 mod calibrate;
+#[cfg(feature = "capture")]
 mod capture;
 mod common;
 mod decode;
 mod demo;
 mod eval;
 mod hull;
+#[cfg(feature = "hdf5")]
 mod import;
 mod info;
 mod patterns;
@@ -35,8 +37,8 @@ mod simulate;
 
 use anyhow::Result;
 
-use crate::util::atomic::write_json;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
+use glasscan::util::atomic::write_json;
 
 /// Reconstruct the mesh of a solid transparent object from a turntable Gray-code scan.
 #[derive(Parser, Debug)]
@@ -65,6 +67,7 @@ enum Command {
     /// Calibrate the rig: camera, monitor pose, turntable axis.
     #[command(subcommand)]
     Calibrate(calibrate::CalibrateCommand),
+    #[cfg(feature = "capture")]
     /// Show the patterns on the monitor and grab them with the camera, view by view.
     Capture(capture::CaptureArgs),
     /// The Gray-code images to show on the monitor, in OpenCV's order.
@@ -73,6 +76,7 @@ enum Command {
     Simulate(simulate::SimulateArgs),
     /// Isotropic remeshing to a target edge length.
     Remesh(remesh::RemeshArgs),
+    #[cfg(feature = "hdf5")]
     /// A scan folder from DRT's published HDF5 captures.
     ImportDrt(import::ImportDrtArgs),
     /// The visual hull of a decoded scan's silhouettes.
@@ -91,7 +95,7 @@ fn long_version() -> String {
     format!(
         "{} (Embree {}, OpenCV {})",
         env!("CARGO_PKG_VERSION"),
-        crate::trace::embree_version(),
+        glasscan::trace::embree_version(),
         opencv::core::get_version_string().unwrap_or_else(|_| "unknown".into())
     )
 }
@@ -113,17 +117,19 @@ pub fn run() -> Result<()> {
         opencv::core::set_log_level(opencv::core::LogLevel::LOG_LEVEL_SILENT)?;
     }
     if let Some(gb) = cli.max_memory_gb {
-        crate::util::budget::set_limit_gb(gb).map_err(anyhow::Error::msg)?;
+        glasscan::util::budget::set_limit_gb(gb).map_err(anyhow::Error::msg)?;
     }
     match cli.command {
         Command::Info(a) => info::run(&a),
         Command::Eval(a) => eval::run(&a),
         Command::Decode(a) => decode::run(&a),
         Command::Calibrate(c) => calibrate::run(&c),
+        #[cfg(feature = "capture")]
         Command::Capture(a) => capture::run(&a),
         Command::Patterns(a) => patterns::run(&a),
         Command::Simulate(a) => simulate::run(&a),
         Command::Remesh(a) => remesh::run(&a),
+        #[cfg(feature = "hdf5")]
         Command::ImportDrt(a) => import::run(&a),
         Command::Hull(a) => hull::run(&a),
         Command::Reconstruct(a) => reconstruct::run(&a),

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::Args;
 
-use crate::patterns::{GrayCode, PhaseShift};
-use crate::util::folder::{StagedFolder, FORCE_HINT};
+use glasscan::patterns::{GrayCode, PhaseShift};
+use glasscan::util::folder::{StagedFolder, FORCE_HINT};
 
 #[derive(Args, Debug)]
 pub struct PatternsArgs {

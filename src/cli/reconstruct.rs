@@ -8,15 +8,15 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 
 use super::common::{parse_views, StageBars};
-use crate::hull::HullOptions;
-use crate::mesh::io::read_mesh;
-use crate::mesh::validate::ensure_valid;
-use crate::mesh::TriMesh;
-use crate::reconstruct::config::{Preset, Settings};
-use crate::reconstruct::output;
-use crate::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
-use crate::reconstruct::Start;
-use crate::util::paths::ensure_output_spares_inputs;
+use glasscan::hull::HullOptions;
+use glasscan::mesh::io::read_mesh;
+use glasscan::mesh::validate::ensure_valid;
+use glasscan::mesh::TriMesh;
+use glasscan::reconstruct::config::{Preset, Settings};
+use glasscan::reconstruct::output;
+use glasscan::reconstruct::pipeline::{reconstruct_scan, Job, Outcome};
+use glasscan::reconstruct::Start;
+use glasscan::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]
 pub struct ReconstructArgs {
@@ -124,23 +124,23 @@ fn stop_on_ctrl_c() -> Arc<AtomicBool> {
 
 /// The closing lines: where the result is, its figures, or how to continue a stopped run.
 fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
-    let ck = &outcome.finished.checkpoint;
-    if !outcome.finished.complete {
+    let checkpoint = &outcome.checkpoint;
+    if !outcome.complete {
         bail!(
             "stopped after stage {} of {} (checkpoint saved): continue with --resume",
-            ck.stages_done,
-            ck.settings.total_stages()
+            checkpoint.stages_done,
+            checkpoint.settings.total_stages()
         );
     }
     outln!(
         "reconstructed {} ({} preset, {} stages) -> {}: stage {}, {} faces, in {:.1} s of stages",
         a.scan.display(),
-        ck.settings.preset,
-        ck.settings.total_stages(),
+        checkpoint.settings.preset,
+        checkpoint.settings.total_stages(),
         a.output.join("result.ply").display(),
         outcome.result_stage + 1,
         outcome.result.faces.len(),
-        ck.stages.iter().map(|s| s.seconds).sum::<f64>()
+        checkpoint.stages.iter().map(|s| s.seconds).sum::<f64>()
     );
     if let Some(e) = &outcome.evaluation {
         outln!(

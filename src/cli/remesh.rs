@@ -6,12 +6,12 @@ use std::time::Instant;
 use anyhow::Result;
 use clap::Args;
 
-use crate::bench::remesh::{figures, RemeshFigures};
-use crate::eval::fidelity::remesh_checked;
-use crate::mesh::io::{read_mesh, write_mesh};
-use crate::mesh::stats::{quality, MeshQuality};
-use crate::remesh::{AdaptiveSizing, RemeshOptions};
-use crate::util::paths::ensure_output_spares_inputs;
+use glasscan::bench::remesh::{figures, RemeshFigures};
+use glasscan::eval::fidelity::remesh_checked;
+use glasscan::mesh::io::{read_mesh, write_mesh};
+use glasscan::mesh::stats::{quality, MeshQuality};
+use glasscan::remesh::{AdaptiveSizing, RemeshOptions};
+use glasscan::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]
 pub struct RemeshArgs {

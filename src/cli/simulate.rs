@@ -6,15 +6,15 @@ use anyhow::Result;
 use clap::Args;
 
 use super::common::{bar, ior, non_negative, parse_size, positive, positive_share};
-use crate::calibrate::board::Board;
-use crate::mesh::io::read_mesh;
-use crate::patterns::PhaseShift;
-use crate::simulate::calibration::{CalibrationBoards, MAX_CAMERA_IMAGES};
-use crate::simulate::Transport;
-use crate::simulate::{simulate, SimulateOptions};
-use crate::simulate::{MAX_SPP, MAX_VIEWS};
-use crate::trace::path::NormalModel;
-use crate::util::paths::ensure_output_spares_inputs;
+use glasscan::calibrate::board::Board;
+use glasscan::mesh::io::read_mesh;
+use glasscan::patterns::PhaseShift;
+use glasscan::simulate::calibration::{CalibrationBoards, MAX_CAMERA_IMAGES};
+use glasscan::simulate::Transport;
+use glasscan::simulate::{simulate, SimulateOptions};
+use glasscan::simulate::{MAX_SPP, MAX_VIEWS};
+use glasscan::trace::path::NormalModel;
+use glasscan::util::paths::ensure_output_spares_inputs;
 
 #[derive(Args, Debug)]
 pub struct SimulateArgs {

@@ -15,8 +15,8 @@
 //!    edge or corner becomes a surface block too, until none does — so every cell that changes
 //!    sign is sampled, and marching cubes gets a closed surface.
 
+use crate::util::progress::StepProgress;
 use anyhow::{bail, Result};
-use indicatif::ProgressBar;
 use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 
@@ -81,22 +81,29 @@ pub fn carve(
     half_fov_tan: f64,
     voxel_mm: f64,
     block: usize,
-    bar: &ProgressBar,
+    progress: &dyn StepProgress,
 ) -> Result<(Grid, Vec<FieldBlock>, CarveStats)> {
     let mut stats = CarveStats {
         voxel_mm,
         ..Default::default()
     };
-    bar.set_message("coarse carve");
+    progress.phase("coarse carve", 0);
     let (lo, hi) = coarse_bounds(field, camera_centre_mm, half_fov_tan, voxel_mm, &mut stats)?;
     let fine = FineGrid::new(lo, hi, voxel_mm, block)?;
     stats.dims = fine.dims;
     stats.origin = [lo.x, lo.y, lo.z];
     stats.blocks = fine.blocks();
-    bar.set_message("classify blocks");
+    progress.phase("classify blocks", 0);
     let (mut inside, mut surface) = classify_blocks(field, &fine);
     stats.evaluated_points += fine.blocks();
-    let blocks = sample_surface(field, &fine, &mut inside, &mut surface, &mut stats, bar);
+    let blocks = sample_surface(
+        field,
+        &fine,
+        &mut inside,
+        &mut surface,
+        &mut stats,
+        progress,
+    );
     stats.surface_blocks = blocks.len();
     stats.inside_blocks = inside.count();
     let grid = Grid {
@@ -280,20 +287,18 @@ fn sample_surface(
     inside: &mut BitSet,
     surface: &mut BitSet,
     stats: &mut CarveStats,
-    bar: &ProgressBar,
+    progress: &dyn StepProgress,
 ) -> Vec<FieldBlock> {
     let n1 = fine.block + 1;
     let mut todo: Vec<usize> = surface.iter().collect();
     let mut blocks: Vec<FieldBlock> = Vec::new();
-    bar.set_length(todo.len() as u64);
-    bar.set_position(0);
-    bar.set_message("sample surface blocks");
+    progress.phase("sample surface blocks", todo.len() as u64);
     while !todo.is_empty() {
         let sampled: Vec<FieldBlock> = todo
             .par_iter()
             .map(|&b| {
                 let s = sample_block(field, fine, b);
-                bar.inc(1);
+                progress.advance(1);
                 s
             })
             .collect();
@@ -301,7 +306,7 @@ fn sample_surface(
         let promote = contradicted_blocks(&sampled, fine, inside, surface);
         blocks.extend(sampled);
         stats.promoted_blocks += promote.len();
-        bar.inc_length(promote.len() as u64);
+        progress.grow(promote.len() as u64);
         todo = promote;
     }
     blocks.sort_unstable_by_key(|b| (b.corner[2], b.corner[1], b.corner[0]));

@@ -7,8 +7,8 @@ pub mod carve;
 use std::borrow::Cow;
 use std::time::Instant;
 
+use crate::util::progress::StepProgress;
 use anyhow::{bail, Context, Result};
-use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -123,7 +123,7 @@ pub fn silhouettes(scan: &Scan, views: &[usize]) -> Result<(Vec<Silhouette>, Vec
 pub fn visual_hull(
     sils: &[Silhouette],
     o: &HullOptions,
-    bar: &ProgressBar,
+    progress: &dyn StepProgress,
 ) -> Result<(TriMesh, HullReport)> {
     let filled: Vec<Cow<Silhouette>> = sils
         .par_iter()
@@ -154,9 +154,9 @@ pub fn visual_hull(
         tolerance: o.tolerance,
     };
     let t0 = Instant::now();
-    let (grid, blocks, stats) = carve(&field, centre, half_fov_tan, o.voxel_mm, o.block, bar)?;
+    let (grid, blocks, stats) = carve(&field, centre, half_fov_tan, o.voxel_mm, o.block, progress)?;
     let seconds_carve = t0.elapsed().as_secs_f64();
-    bar.set_message("marching cubes");
+    progress.phase("marching cubes", 0);
     let t1 = Instant::now();
     let mc = marching_cubes(&grid, &blocks);
     let seconds_marching_cubes = t1.elapsed().as_secs_f64();
@@ -171,7 +171,7 @@ pub fn visual_hull(
     let t2 = Instant::now();
     let mesh = match o.edge_mm {
         Some(h) => {
-            bar.set_message("remesh");
+            progress.phase("remesh", 0);
             remesh_checked(&mc, &RemeshOptions::uniform(h), 0)
                 .context("remeshing the hull (--edge-mm)")?
                 .0

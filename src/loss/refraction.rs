@@ -29,7 +29,8 @@ use crate::trace::{Ray, TraceError};
 type V3 = Vector3<f64>;
 
 /// What the refraction residual compares.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum ResidualForm {
     /// The paper's ‖Q − Q′‖² with Q′ where the exit ray meets the monitor plane (mm²).

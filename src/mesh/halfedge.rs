@@ -271,13 +271,6 @@ impl HalfEdgeMesh {
         n
     }
 
-    /// Area-weighted vertex normal of `v` (unit, or zero around a degenerate fan).
-    pub fn vertex_normal(&self, v: u32) -> Vector3<f64> {
-        let mut n = Vector3::zeros();
-        self.for_each_outgoing(v, |h| n += self.face_cross(self.h_face[h as usize]));
-        n.try_normalize(0.0).unwrap_or_else(Vector3::zeros)
-    }
-
     /// Splits edge `e` at `p` (mm): the edge's two triangles become four around a new vertex.
     /// Returns the new vertex and the edge that continues `e` beyond it (`e` keeps the first
     /// half). Always valid on a closed mesh.

@@ -10,7 +10,8 @@ use crate::loss::Robust;
 use crate::trace::path::NormalModel;
 
 /// The built-in settings, from quickest to most accurate, and DRT's own schedule.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
     Fast,
@@ -151,8 +152,8 @@ pub struct Settings {
     /// judges it on its first stage after the warm-up, which runs again without it, and keeps
     /// it only if it acted there on a large share of the vertices and left the held-out outlines
     /// within a factor of the run without it ([`crate::reconstruct::MembraneVerdict`]). 0: off.
-    #[serde(default)]
-    pub weight_unseen: f64,
+    #[serde(default, alias = "weight_unseen")]
+    pub weight_membrane: f64,
     /// In the stages whose target edge is shorter than this share of the diagonal, Large Steps'
     /// λ and the smoothness weight are raised by (this / the stage's edge)², so that both hold
     /// the surface over as many millimetres as at this edge: λ acts on the combinatorial
@@ -290,7 +291,7 @@ impl Settings {
             weight_bits: 0.01,
             robust_anneal: 1.0,
             average_share: 0.5,
-            weight_unseen: 10.0,
+            weight_membrane: 10.0,
             smoothing_edge: 0.0,
             silhouette_probe: 0.03,
         };
@@ -349,7 +350,7 @@ impl Settings {
                 min_cos: 0.0,
                 average_share: 0.0,
                 weight_bits: 0.0,
-                weight_unseen: 0.0,
+                weight_membrane: 0.0,
                 silhouette_probe: 1.0,
                 ..base
             },
@@ -481,7 +482,7 @@ impl Settings {
             ("weight_silhouette", self.weight_silhouette),
             ("weight_smoothness", self.weight_smoothness),
             ("weight_bits", self.weight_bits),
-            ("weight_unseen", self.weight_unseen),
+            ("weight_membrane", self.weight_membrane),
         ] {
             if !(w >= 0.0 && w.is_finite()) {
                 return bad(k, "must be a finite weight ≥ 0");

@@ -81,10 +81,10 @@ pub fn read_checkpoint(out: &Path) -> Option<Checkpoint> {
     serde_json::from_str(&text).ok()
 }
 
-/// Commits `ck` as the state of the run in `out` (atomically).
-pub fn commit(out: &Path, ck: &Checkpoint) -> Result<()> {
+/// Commits `checkpoint` as the state of the run in `out` (atomically).
+pub fn commit(out: &Path, checkpoint: &Checkpoint) -> Result<()> {
     write_atomic(&checkpoint_path(out), |w| {
-        serde_json::to_writer(&mut *w, ck)?;
+        serde_json::to_writer(&mut *w, checkpoint)?;
         Ok(())
     })
     .with_context(|| format!("cannot write {}", checkpoint_path(out).display()))
@@ -126,13 +126,13 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
     }
     let committed = read_checkpoint(out);
     match committed {
-        Some(ck) if resume && !force => Ok(Existing::Run(Box::new(ck))),
-        Some(ck) if !force => bail!(
+        Some(checkpoint) if resume && !force => Ok(Existing::Run(Box::new(checkpoint))),
+        Some(checkpoint) if !force => bail!(
             "{} holds a run ({} of {} stages done): continue it with --resume, start it over with \
              --force, or choose another output folder",
             out.display(),
-            ck.stages_done,
-            ck.settings.total_stages()
+            checkpoint.stages_done,
+            checkpoint.settings.total_stages()
         ),
         None if !(resume || force) => bail!(
             "{} holds the files of a run that stopped before its first checkpoint: start it over \

@@ -11,7 +11,7 @@ use anyhow::Result;
 use super::config::Settings;
 use super::plot::loss_plot;
 use super::validation::best_stage;
-use super::{load_inputs, run, stage_path, Existing, Finished, Progress, Start};
+use super::{load_inputs, run, stage_path, Checkpoint, Existing, Finished, Progress, Start};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::stats::quality;
@@ -32,9 +32,11 @@ pub struct Job<'a> {
     pub existing: Existing,
 }
 
-/// What [`reconstruct_scan`] hands back.
+/// What [`reconstruct_scan`] hands back: the run's last committed checkpoint and its result.
 pub struct Outcome {
-    pub finished: Finished,
+    pub checkpoint: Checkpoint,
+    /// False when `stop` ended the run before its last stage (continue with `--resume`).
+    pub complete: bool,
     /// The result: the stage whose mesh fits the held-out views best (the last stage when none
     /// are held out, or when the run was stopped), and its mesh.
     pub result_stage: usize,
@@ -71,8 +73,9 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         // A stopped run has no result yet: its last stage stands in.
         return Ok(Outcome {
             result_stage: finished.checkpoint.stages_done.saturating_sub(1),
-            result: finished.mesh.clone(),
-            finished,
+            result: finished.mesh,
+            checkpoint: finished.checkpoint,
+            complete: false,
             evaluation: None,
             warnings,
         });
@@ -88,7 +91,8 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     };
     write_results(out, &finished, &result, &report)?;
     Ok(Outcome {
-        finished,
+        checkpoint: finished.checkpoint,
+        complete: true,
         result_stage,
         result,
         evaluation,
@@ -152,17 +156,17 @@ struct Report<'a> {
 
 /// `result.ply`, `loss.png` and `report.json` of a complete run in `out`.
 fn write_results(out: &Path, finished: &Finished, result: &TriMesh, r: &Report) -> Result<()> {
-    let ck = &finished.checkpoint;
+    let checkpoint = &finished.checkpoint;
     write_mesh(&out.join("result.ply"), result)?;
-    loss_plot(&out.join("loss.png"), ck)?;
+    loss_plot(&out.join("loss.png"), checkpoint)?;
     let report = serde_json::json!({
-        "settings": ck.settings,
+        "settings": checkpoint.settings,
         "views": r.views,
         "seconds_total": r.t0.elapsed().as_secs_f64(),
-        "seconds_stages": ck.stages.iter().map(|s| s.seconds).sum::<f64>(),
-        "stages": ck.stages,
-        "warm_up": ck.warm_up,
-        "membrane": ck.membrane,
+        "seconds_stages": checkpoint.stages.iter().map(|s| s.seconds).sum::<f64>(),
+        "stages": checkpoint.stages,
+        "warm_up": checkpoint.warm_up,
+        "membrane": checkpoint.membrane,
         "result_stage": r.result_stage + 1,
         "result_mesh": quality(result),
         "evaluation_against_ground_truth": r.evaluation.map(|e| e.to_json()),

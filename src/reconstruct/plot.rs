@@ -79,21 +79,21 @@ const TERMS: [Term; 5] = [
     ("refraction", |r| r.refraction, RGBColor(0, 80, 200)),
     ("silhouette", |r| r.silhouette, RGBColor(0, 140, 0)),
     ("smoothness", |r| r.smoothness, RGBColor(200, 0, 0)),
-    ("unseen (membrane)", |r| r.unseen, RGBColor(140, 0, 160)),
+    ("membrane", |r| r.membrane, RGBColor(140, 0, 160)),
 ];
 
 /// Draws the weighted term means of a run's history (one point per iteration, stage boundaries
 /// as grey lines): the warm-up stages (DRT's terms and weights, whose total can be negative) on
 /// a linear scale in a panel of their own, the other stages on a log scale with the fit to the
 /// held-out views after each stage (when the run holds views out).
-pub fn loss_plot(path: &Path, ck: &Checkpoint) -> Result<()> {
-    let history = &ck.history;
+pub fn loss_plot(path: &Path, checkpoint: &Checkpoint) -> Result<()> {
+    let history = &checkpoint.history;
     let split = history
         .iter()
-        .position(|r| r.stage >= ck.settings.warmup_stages)
+        .position(|r| r.stage >= checkpoint.settings.warmup_stages)
         .unwrap_or(history.len());
     let (warmup, main) = history.split_at(split);
-    let validation = validation_points(ck);
+    let validation = validation_points(checkpoint);
     let panels = Panels {
         warmup,
         main,
@@ -120,13 +120,17 @@ struct HeldOutPoint {
 type HeldOutSeries = (&'static str, fn(&HeldOutPoint) -> f64, ShapeStyle);
 
 /// The held-out fit at the end of each stage after the warm-up.
-fn validation_points(ck: &Checkpoint) -> Vec<HeldOutPoint> {
+fn validation_points(checkpoint: &Checkpoint) -> Vec<HeldOutPoint> {
     let mut end = 0;
     let mut points = Vec::new();
-    for st in &ck.stages {
-        end += ck.history.iter().filter(|r| r.stage == st.stage).count();
+    for st in &checkpoint.stages {
+        end += checkpoint
+            .history
+            .iter()
+            .filter(|r| r.stage == st.stage)
+            .count();
         if let (true, Some(v)) = (
-            st.stage >= ck.settings.warmup_stages,
+            st.stage >= checkpoint.settings.warmup_stages,
             st.validation.as_ref(),
         ) {
             points.push(HeldOutPoint {

@@ -130,7 +130,7 @@ impl Sums {
         }
     }
 
-    fn of(term: &super::TermValue) -> Sums {
+    fn of(term: &super::terms::TermValue) -> Sums {
         Sums {
             loss: term.loss,
             weight: term.weight,
@@ -160,13 +160,13 @@ pub fn validate_mesh(
     // Per view (sorted): the refraction and the silhouette term's sums, the outline's pixels.
     let mut views: BTreeMap<usize, ViewSums> = BTreeMap::new();
     for &t in &split.held_targets {
-        let term = super::refraction_over(inputs, &surface, mesh, settings, &[(t, 0)])?;
+        let term = super::terms::refraction_over(inputs, &surface, mesh, settings, &[(t, 0)])?;
         let sums = &mut views.entry(inputs.targets[t].view).or_default().0;
         *sums = sums.add(Sums::of(&term));
     }
     for &k in &split.held_silhouettes {
         let sil = &inputs.silhouettes[k];
-        let term = super::silhouette_over(inputs, &surface, mesh, &edges, settings, &[k])?;
+        let term = super::terms::silhouette_over(inputs, &surface, mesh, &edges, settings, &[k])?;
         let outline = outline_disagreement(mesh, sil, surface.scene())?;
         let entry = views.entry(sil.view).or_default();
         entry.1 = entry.1.add(Sums::of(&term));

@@ -15,7 +15,7 @@ use glasscan::scan::silhouette::Silhouette;
 use glasscan::scan::Scan;
 use glasscan::simulate::{simulate, SimulateOptions};
 use glasscan::trace::{BuildMode, Device, Ray, Scene};
-use indicatif::ProgressBar;
+use glasscan::util::progress::Silent;
 use nalgebra::{Point3, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -174,7 +174,7 @@ fn the_hull_of_a_sphere_converges_to_it() {
             edge_mm: None,
             ..HullOptions::default()
         };
-        let (mesh, report) = visual_hull(&sils, &o, &ProgressBar::hidden()).unwrap();
+        let (mesh, report) = visual_hull(&sils, &o, &Silent).unwrap();
         assert_eq!(report.genus, 0);
         let radial: Vec<f64> = mesh.positions.iter().map(|p| p.coords.norm() - r).collect();
         let mean = radial.iter().map(|e| e.abs()).sum::<f64>() / radial.len() as f64;
@@ -212,10 +212,7 @@ fn tolerance_keeps_what_one_bad_mask_cuts_away() {
             edge_mm: None,
             ..HullOptions::default()
         };
-        visual_hull(&sils, &o, &ProgressBar::hidden())
-            .unwrap()
-            .1
-            .volume_mm3
+        visual_hull(&sils, &o, &Silent).unwrap().1.volume_mm3
     };
     let ball = 4.0 / 3.0 * std::f64::consts::PI * r.powi(3);
     let (strict, tolerant) = (volume(0), volume(1));
@@ -256,10 +253,7 @@ fn a_hole_the_decoder_filled_is_inside_for_the_hull_and_outside_for_the_silhouet
             edge_mm: None,
             ..HullOptions::default()
         };
-        visual_hull(&sils, &o, &ProgressBar::hidden())
-            .unwrap()
-            .1
-            .volume_mm3
+        visual_hull(&sils, &o, &Silent).unwrap().1.volume_mm3
     };
     let whole = volume(sphere_silhouettes(24, 240, 180, r).swap_remove(3));
     assert_eq!(volume(filled), whole);
@@ -417,7 +411,7 @@ fn hulls_of_procedural_objects_contain_the_true_shapes() {
             voxel_mm: voxel,
             ..HullOptions::default()
         };
-        let (hull, _) = visual_hull(&sils, &o, &ProgressBar::hidden()).unwrap();
+        let (hull, _) = visual_hull(&sils, &o, &Silent).unwrap();
         ensure_valid(&hull).unwrap();
         let truth = glasscan::mesh::io::read_mesh(&dir.path().join("ground_truth.ply")).unwrap();
         let samples: Vec<Point3<f64>> = sample_surface(&truth, 100_000, 4)

@@ -1,5 +1,6 @@
 //! The module graph goes one way down: the layering table of docs/architecture.md §10, checked
-//! against every `crate::` path in the sources.
+//! against every `crate::` path in the sources (and every `glasscan::` path of the command
+//! line, which lives in the binary).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -51,8 +52,12 @@ fn uses(src: &Path, module: &str) -> Vec<String> {
     let mut used = Vec::new();
     for f in files {
         let text = std::fs::read_to_string(&f).unwrap();
-        for (i, _) in text.match_indices("crate::") {
-            let name: String = text[i + 7..]
+        // The command line, in the binary, names the library's modules as `glasscan::`.
+        let paths = text
+            .match_indices("crate::")
+            .chain(text.match_indices("glasscan::"));
+        for (i, prefix) in paths {
+            let name: String = text[i + prefix.len()..]
                 .chars()
                 .take_while(|c| c.is_ascii_lowercase() || *c == '_')
                 .collect();

@@ -422,7 +422,7 @@ fn faces_no_ray_sees_are_flattened_by_the_membrane() {
         (accuracy(&out.join("result.ply"), &scan), report, out)
     };
     let (with, report, out) = run("with", "");
-    let (without, off, _) = run("without", "weight_unseen = 0.0\n");
+    let (without, off, _) = run("without", "weight_membrane = 0.0\n");
     let hull = hull_accuracy(&out, &scan);
     eprintln!("prism: hull {hull:.4} mm, with the membrane {with:.4}, without {without:.4}");
     let verdict = &report["membrane"];

@@ -1,0 +1,274 @@
+//! The stage loop: each stage's edge length, its remesh, its iterations (loss, gradient,
+//! optimiser step), its check and its report.
+
+use super::config::Settings;
+use super::coverage::Coverage;
+use super::optim::{Stepper, TailMean};
+use super::validation::{validate_mesh, Split, ValidationRecord};
+use crate::loss::Drops;
+use crate::mesh::validate::{validate, Defect};
+use crate::mesh::TriMesh;
+use crate::remesh::{remesh, RemeshOptions};
+use crate::trace::path::MeshSurface;
+use crate::trace::BuildMode;
+use anyhow::{bail, Context, Result};
+use nalgebra::Point3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::time::Instant;
+
+use super::terms::*;
+use super::{Checkpoint, Inputs, IterationRecord, Progress, StageReport};
+
+/// The share of the start mesh's area whose thickness is its "thin parts" (see
+/// [`Checkpoint::thin_part_mm`]).
+pub(super) const THIN_SHARE: f64 = 0.02;
+
+/// Thin parts' thickness over the warm-up's largest edge: at edge t/1.5 a tube of diameter t
+/// has about 3π/2 ≈ 5 edges around. At the schedule's coarse start a tube as thick as the edge
+/// is a triangular prism, which DRT's steps flatten (the horse's tail: docs/decisions.md).
+pub(super) const THIN_PART_EDGES: f64 = 1.5;
+
+/// Target edge length of stage `s` (index `k` in its own schedule `phase`), mm: the schedule's
+/// share of the start mesh's diagonal, and in the warm-up at most the thin parts' thickness
+/// over [`THIN_PART_EDGES`].
+pub(super) fn stage_edge_mm(checkpoint: &Checkpoint, phase: &Settings, s: usize, k: usize) -> f64 {
+    let edge = phase.edge_mm(k, checkpoint.diagonal_mm);
+    match checkpoint.thin_part_mm {
+        Some(thin) if s < checkpoint.settings.warmup_stages => edge.min(thin / THIN_PART_EDGES),
+        _ => edge,
+    }
+}
+
+/// Remeshes `mesh` to the next stage's edge length, runs that stage on the views `split` fits
+/// and measures the result on those it holds out; records it in `checkpoint`.
+pub(super) fn run_next_stage(
+    inputs: &Inputs,
+    split: &Split,
+    checkpoint: &mut Checkpoint,
+    mesh: &TriMesh,
+    progress: &dyn Progress,
+) -> Result<TriMesh> {
+    let s = checkpoint.stages_done;
+    let t0 = Instant::now();
+    let (mut phase, k) = checkpoint.settings.stage(s);
+    if checkpoint.membrane.as_ref().is_some_and(|m| !m.kept) {
+        phase.weight_membrane = 0.0;
+    }
+    let edge_mm = stage_edge_mm(checkpoint, &phase, s, k);
+    if s == 0 && edge_mm < phase.edge_mm(k, checkpoint.diagonal_mm) {
+        progress.note(&format!(
+            "warm-up at {edge_mm:.2} mm edges: 2 % of the start mesh's area is thinner than {:.2} mm",
+            checkpoint.thin_part_mm.unwrap_or(f64::NAN)
+        ));
+    }
+    let opts = RemeshOptions {
+        iterations: phase.remesh_iterations,
+        ..RemeshOptions::uniform(edge_mm)
+    };
+    let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
+    let stages = checkpoint.settings.total_stages();
+    progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
+    let (report, mean) = run_stage(
+        (inputs, split),
+        &mut mesh,
+        &phase,
+        (s, k),
+        edge_mm,
+        &mut checkpoint.history,
+        progress,
+    )?;
+    let (validation, averaged) =
+        settle_stage((inputs, split), &mut mesh, mean, &checkpoint.settings)?;
+    let report = StageReport {
+        seconds: t0.elapsed().as_secs_f64(),
+        degenerate_faces: check_stage_mesh(&mesh, s)?,
+        validation,
+        averaged,
+        ..report
+    };
+    progress.stage_end(&report);
+    checkpoint.stages.push(report);
+    checkpoint.stages_done += 1;
+    Ok(mesh)
+}
+
+/// The stage's mesh: its last iterate (in `mesh`) or the mean of its last iterates, whichever
+/// fits the held-out views better — a stage still far from its minimum ends ahead of its mean,
+/// one at its minimum ends in the noise about it; the mean when no view is held out. Returns
+/// the chosen mesh's fit and whether it is the mean.
+pub(super) fn settle_stage(
+    (inputs, split): (&Inputs, &Split),
+    mesh: &mut TriMesh,
+    mean: Option<Vec<Point3<f64>>>,
+    settings: &Settings,
+) -> Result<(Option<ValidationRecord>, bool)> {
+    let last_fit = validate_mesh(inputs, split, mesh, settings)?;
+    let Some(mean) = mean else {
+        return Ok((last_fit, false));
+    };
+    let last = std::mem::replace(&mut mesh.positions, mean);
+    let mean_fit = validate_mesh(inputs, split, mesh, settings)?;
+    match (last_fit, mean_fit) {
+        (Some(l), Some(m)) if l.total < m.total => {
+            mesh.positions = last;
+            Ok((Some(l), false))
+        }
+        (_, m) => Ok((m, true)),
+    }
+}
+
+/// The iterations of stage `s` of the run, stage `k` of `settings`' schedule, on `mesh` (moved in
+/// place to the last iterate), and the mean of the last iterates when `settings` average them.
+pub(super) fn run_stage(
+    (inputs, split): (&Inputs, &Split),
+    mesh: &mut TriMesh,
+    settings: &Settings,
+    (s, k): (usize, usize),
+    edge_mm: f64,
+    history: &mut Vec<IterationRecord>,
+    progress: &dyn Progress,
+) -> Result<(StageReport, Option<Vec<Point3<f64>>>)> {
+    let mut surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Refit)?;
+    let edges = mesh.interior_edges();
+    let mut stepper = Stepper::new(
+        &settings.optimizer,
+        mesh,
+        (k, settings.stages),
+        edge_mm,
+        settings.iterations,
+    )?;
+    let (mut used, mut drops, mut contour) = (0, Drops::default(), 0);
+    let mut last = IterationRecord::default();
+    let mut tail = TailMean::new(settings.iterations, settings.average_share);
+    let warm_in = split
+        .fit_targets
+        .len()
+        .div_ceil(settings.refraction_views.max(1));
+    let mut coverage = Coverage::new(mesh.positions.len(), warm_in);
+    let mut membrane_share = 0.0f64;
+    for it in 0..settings.iterations {
+        let mut rng = ChaCha8Rng::seed_from_u64(iteration_seed(settings.seed, s, it));
+        let refraction = refraction_term(inputs, split, &surface, mesh, settings, &mut rng)?;
+        let silhouette =
+            silhouette_term(inputs, split, &surface, mesh, &edges, settings, &mut rng)?;
+        coverage.record(&refraction.grad);
+        let (membrane, share) = membrane_term(mesh, &edges, &coverage, settings, edge_mm);
+        membrane_share = membrane_share.max(share);
+        let terms = Terms {
+            refraction,
+            silhouette,
+            smoothness: smoothness_term(mesh, &edges, settings),
+            membrane,
+        };
+        used += terms.refraction.used;
+        drops.add(&terms.refraction.drops);
+        contour += terms.silhouette.used;
+        let (record, grad) = terms.combine(settings, (s, it));
+        last = record;
+        history.push(last);
+        progress.iteration(&last);
+        let next = stepper.step(&mesh.positions, &grad);
+        if let Some(bad) = next.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+            bail!("stage {s}, iteration {it}: vertex {bad} became non-finite (internal error; the last checkpoint is intact)");
+        }
+        surface.update_positions(&next)?;
+        mesh.positions = next;
+        tail.add(it, &mesh.positions);
+    }
+    let report = StageReport {
+        stage: s,
+        edge_mm,
+        vertices: mesh.positions.len(),
+        faces: mesh.faces.len(),
+        seconds: 0.0,
+        refraction_rays_used: used,
+        refraction_drops: drops,
+        contour_edges_used: contour,
+        degenerate_faces: 0,
+        last,
+        validation: None,
+        averaged: false,
+        unseen_share: coverage.unseen_share(),
+        membrane_share,
+    };
+    Ok((report, tail.mean()))
+}
+
+/// Checks the mesh at the end of stage `s` (closed, manifold, outward); returns its count of
+/// degenerate faces (the next remesh removes them).
+pub(super) fn check_stage_mesh(mesh: &TriMesh, s: usize) -> Result<usize> {
+    let report = validate(mesh);
+    let fatal: Vec<String> = report
+        .defects
+        .iter()
+        .filter(|d| !matches!(d, Defect::Degenerate { .. }))
+        .map(|d| d.to_string())
+        .collect();
+    if !fatal.is_empty() {
+        bail!(
+            "stage {s}: the mesh is no longer a valid surface: {}",
+            fatal.join("; ")
+        );
+    }
+    Ok(report
+        .defects
+        .iter()
+        .map(|d| match d {
+            Defect::Degenerate { count, .. } => *count,
+            _ => 0,
+        })
+        .sum())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn thin_parts_cap_the_warm_up_edge_only() {
+        // The schedule's first edge: 240 mm / 60 = 4 mm.
+        let edges = |checkpoint: &Checkpoint| -> Vec<f64> {
+            (0..checkpoint.settings.total_stages())
+                .map(|s| {
+                    let (phase, k) = checkpoint.settings.stage(s);
+                    stage_edge_mm(checkpoint, &phase, s, k)
+                })
+                .collect()
+        };
+        let (free, thin, thick) = (
+            edges(&Checkpoint::example(None)),
+            edges(&Checkpoint::example(Some(3.0))),
+            edges(&Checkpoint::example(Some(9.0))),
+        );
+        let warmup = Checkpoint::example(None).settings.warmup_stages;
+        assert!(warmup > 0);
+        for s in 0..free.len() {
+            let want = if s < warmup { 2.0 } else { free[s] };
+            assert!((thin[s] - want).abs() < 1e-12, "stage {s}: {thin:?}");
+            assert_eq!(thick[s], free[s], "stage {s}");
+        }
+        assert!((free[0] - 4.0).abs() < 1e-12, "{free:?}");
+    }
+
+    #[test]
+    fn runs_with_different_seeds_draw_apart_and_seed_0_as_before() {
+        // Seed 0 keeps the stream its documented figures were measured with.
+        for (s, it) in [(0, 0), (3, 299), (7, 12)] {
+            assert_eq!(iteration_seed(0, s, it), ((s as u64) << 40) ^ it as u64);
+        }
+        // No two of seeds 0–15 share an iteration's seed over 10 stages of 1,000 iterations
+        // (the bare seed shared all of them among seeds 0–15, in another order).
+        let mut seen = std::collections::HashSet::new();
+        for seed in 0..16 {
+            for s in 0..10 {
+                for it in 0..1000 {
+                    assert!(
+                        seen.insert(iteration_seed(seed, s, it)),
+                        "seed {seed} {s} {it}"
+                    );
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,235 @@
+//! The terms of the loss at one iteration, each a weighted mean with its gradient per vertex:
+//! refraction, silhouette, smoothness and the membrane on what no ray sees.
+
+use super::config::Settings;
+use super::coverage::Coverage;
+use super::validation::Split;
+use crate::loss::membrane::add_membrane;
+use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
+use crate::loss::smoothness::add_smoothness;
+use crate::loss::{silhouette, Accumulator, Drops};
+use crate::mesh::{InteriorEdge, TriMesh};
+use crate::trace::path::MeshSurface;
+use crate::trace::refract::IOR_AIR;
+use crate::util::scatter_seed;
+use anyhow::Result;
+use nalgebra::Vector3;
+use rand::seq::index::sample;
+use rand::RngExt;
+use rand_chacha::ChaCha8Rng;
+
+type V3 = Vector3<f64>;
+
+use super::{Inputs, IterationRecord};
+
+/// One term's value at an iteration: its weighted sum, the weight it is a mean over, what it
+/// used and dropped, and its gradient per vertex.
+pub(super) struct TermValue {
+    pub(super) loss: f64,
+    pub(super) weight: f64,
+    pub(super) used: usize,
+    pub(super) drops: Drops,
+    pub(super) grad: Vec<V3>,
+}
+
+impl TermValue {
+    pub(super) fn from(acc: Accumulator, mesh: &TriMesh) -> Self {
+        let (loss, weight, used, drops) = (acc.loss, acc.weight, acc.used, acc.drops);
+        Self {
+            loss,
+            weight,
+            used,
+            drops,
+            grad: acc.finish(mesh),
+        }
+    }
+}
+
+/// The three terms at one iteration.
+pub(super) struct Terms {
+    pub(super) refraction: TermValue,
+    pub(super) silhouette: TermValue,
+    pub(super) smoothness: TermValue,
+    pub(super) membrane: TermValue,
+}
+
+impl Terms {
+    /// Each term as a weighted mean over what it used, times its setting's weight: the record of
+    /// the iteration (stage `s`, iteration `it`) and the total gradient.
+    pub(super) fn combine(
+        &self,
+        settings: &Settings,
+        (s, it): (usize, usize),
+    ) -> (IterationRecord, Vec<V3>) {
+        let per_weight = |t: &TermValue| if t.weight > 0.0 { 1.0 / t.weight } else { 0.0 };
+        let (wr, ws, wm, wu) = (
+            settings.weight_refraction * per_weight(&self.refraction),
+            settings.weight_silhouette * per_weight(&self.silhouette),
+            settings.weight_smoothness * per_weight(&self.smoothness),
+            settings.weight_membrane * per_weight(&self.membrane),
+        );
+        let mut record = IterationRecord {
+            stage: s,
+            iteration: it,
+            refraction: wr * self.refraction.loss,
+            silhouette: ws * self.silhouette.loss,
+            smoothness: wm * self.smoothness.loss,
+            membrane: wu * self.membrane.loss,
+            total: 0.0,
+        };
+        record.total = record.refraction + record.silhouette + record.smoothness + record.membrane;
+        let grad = (self.refraction.grad.iter())
+            .zip(&self.silhouette.grad)
+            .zip(&self.smoothness.grad)
+            .zip(&self.membrane.grad)
+            .map(|(((a, b), c), d)| a * wr + b * ws + c * wm + d * wu)
+            .collect();
+        (record, grad)
+    }
+}
+
+/// The seed of the random choices (views, first pixels) of iteration `it` of the run's stage
+/// `s`: the run's seed scattered ([`scatter_seed`]), because with the bare seed `seed ^ it` two
+/// seeds below the iteration count shared their draws in another order (seed 1's iteration 0
+/// drew seed 0's iteration 1): runs with different seeds were not independent.
+pub(super) fn iteration_seed(seed: u64, s: usize, it: usize) -> u64 {
+    scatter_seed(seed) ^ ((s as u64) << 40) ^ it as u64
+}
+
+/// The refraction term over `refraction_views` random views of those `split` fits, every
+/// `pixel_stride`-th pixel from a random offset.
+pub(super) fn refraction_term(
+    inputs: &Inputs,
+    split: &Split,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    settings: &Settings,
+    rng: &mut ChaCha8Rng,
+) -> Result<TermValue> {
+    let fit = &split.fit_targets;
+    let k = settings.refraction_views.min(fit.len());
+    let views: Vec<(usize, usize)> = sample(rng, fit.len(), k)
+        .into_iter()
+        .map(|v| (fit[v], rng.random_range(0..settings.pixel_stride)))
+        .collect();
+    refraction_over(inputs, surface, mesh, settings, &views)
+}
+
+/// The refraction term over `views` (target index, first pixel), every `pixel_stride`-th pixel.
+pub(super) fn refraction_over(
+    inputs: &Inputs,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    settings: &Settings,
+    views: &[(usize, usize)],
+) -> Result<TermValue> {
+    let rs = RefractionSettings {
+        ior: inputs.ior,
+        ior_air: IOR_AIR,
+        max_refractions: settings.max_refractions,
+        normals: settings.normals,
+        form: settings.residual,
+        robust: settings.robust,
+        min_cos: settings.min_cos,
+        grazing_cell_footprints: settings.grazing_cell_footprints,
+        footprint: settings.footprint,
+        bit_weight: settings.weight_bits,
+    };
+    let vn = surface.vertex_normals();
+    let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
+    for &(v, offset) in views {
+        let view = &inputs.targets[v];
+        let sub = ViewTargets {
+            pixels: view
+                .pixels
+                .iter()
+                .skip(offset)
+                .step_by(settings.pixel_stride)
+                .copied()
+                .collect(),
+            ..view.clone_empty()
+        };
+        add_view(surface, mesh, vn, &rs, &sub, &mut acc)?;
+    }
+    Ok(TermValue::from(acc, mesh))
+}
+
+/// The silhouette term over `silhouette_views` random views of those `split` fits (nothing at
+/// weight 0).
+pub(super) fn silhouette_term(
+    inputs: &Inputs,
+    split: &Split,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    edges: &[InteriorEdge],
+    settings: &Settings,
+    rng: &mut ChaCha8Rng,
+) -> Result<TermValue> {
+    let fit = &split.fit_silhouettes;
+    let k = settings.silhouette_views.min(fit.len());
+    let views: Vec<usize> = if settings.weight_silhouette > 0.0 {
+        sample(rng, fit.len(), k)
+            .into_iter()
+            .map(|v| fit[v])
+            .collect()
+    } else {
+        Vec::new()
+    };
+    silhouette_over(inputs, surface, mesh, edges, settings, &views)
+}
+
+/// The silhouette term over the silhouettes `views`.
+pub(super) fn silhouette_over(
+    inputs: &Inputs,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    edges: &[InteriorEdge],
+    settings: &Settings,
+    views: &[usize],
+) -> Result<TermValue> {
+    let mut acc = Accumulator::new(mesh.positions.len(), false);
+    for &v in views {
+        silhouette::add_view(
+            mesh,
+            edges,
+            &inputs.silhouettes[v],
+            surface.scene(),
+            settings.silhouette,
+            settings.silhouette_probe,
+            &mut acc,
+        )?;
+    }
+    Ok(TermValue::from(acc, mesh))
+}
+
+/// The smoothness term over every interior edge.
+pub(super) fn smoothness_term(
+    mesh: &TriMesh,
+    edges: &[InteriorEdge],
+    settings: &Settings,
+) -> TermValue {
+    let mut acc = Accumulator::new(mesh.positions.len(), false);
+    add_smoothness(mesh, edges, settings.smoothness, &mut acc);
+    TermValue::from(acc, mesh)
+}
+
+/// The membrane term on the patches of vertices `coverage` says the refraction data has not seen
+/// (nothing at weight 0 or before the record is warm), and the share of the vertices it acts on.
+pub(super) fn membrane_term(
+    mesh: &TriMesh,
+    edges: &[InteriorEdge],
+    coverage: &Coverage,
+    settings: &Settings,
+    edge_mm: f64,
+) -> (TermValue, f64) {
+    let mut acc = Accumulator::new(mesh.positions.len(), false);
+    let patches = (settings.weight_membrane > 0.0)
+        .then(|| coverage.unseen_patches(edges))
+        .flatten();
+    let mut share = 0.0;
+    if let Some(patches) = patches {
+        share = patches.iter().filter(|p| **p).count() as f64 / patches.len().max(1) as f64;
+        add_membrane(mesh, edges, &patches, edge_mm, &mut acc);
+    }
+    (TermValue::from(acc, mesh), share)
+}
