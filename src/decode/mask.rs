@@ -203,7 +203,9 @@ const TRIM_PASSES: usize = 2;
 /// decides: it is about c·r_in + (1 − c), r_in the object's own (the smallest ratio among the
 /// object pixels within two pixels), so c < ½ when the ratio exceeds (1 + r_in)/2 — a rule that
 /// trims too much where the glass near the outline is brighter than r_in (light reflected at
-/// grazing incidence: docs/decisions.md). Pixels whose decoded point moved (rule 1) are never
+/// grazing incidence:
+/// docs/decisions.md#grazing-rays-dropped-and-the-outline-placed-by-coverage).
+/// Pixels whose decoded point moved (rule 1) are never
 /// trimmed.
 fn trim_mixed_edge(
     mask: &mut [u8],

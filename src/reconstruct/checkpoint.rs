@@ -113,13 +113,15 @@ pub struct MembraneVerdict {
 
 /// The judged stage's held-out silhouette term with the membrane over without it above which
 /// the term is rejected: measured 0.98–1.44 on the block's and the prism's scans, where
-/// flattening was right, and 4.75 on the demo's pebble, where it was wrong (docs/decisions.md).
+/// flattening was right, and 4.75 on the demo's pebble, where it was wrong
+/// (docs/decisions.md#faces-no-ray-sees-the-membrane-term).
 pub const MEMBRANE_SILHOUETTE_RATIO: f64 = 2.0;
 
 /// The smallest share of the judged stage's vertices the membrane term must have acted on to be
 /// kept: the block's top and bottom are 21 % of its vertices at its first Large Steps stage, the
 /// prism's 27 %; a small pebble's poles at coarse edges 3 % (the term then flattened them in the
-/// later stages), the dog's at 1280×960 2 % (docs/decisions.md).
+/// later stages), the dog's at 1280×960 2 %
+/// (docs/decisions.md#faces-no-ray-sees-the-membrane-term).
 pub const MEMBRANE_MIN_SHARE: f64 = 0.05;
 
 #[cfg(test)]

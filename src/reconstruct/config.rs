@@ -165,7 +165,9 @@ pub struct Settings {
     /// look: the edge counts only if the mesh is hit on one side and missed on the other, so
     /// only edges within this distance of the mesh's own outline pull on the silhouettes. An
     /// edge hidden just inside the outline (the contour of a mesh zigzags) would pull outward
-    /// with nothing to balance it (docs/decisions.md). DRT's: 1; absent from reports written
+    /// with nothing to balance it
+    /// (docs/decisions.md#the-silhouettes-probes-and-the-holes-the-decoder-filled).
+    /// DRT's: 1; absent from reports written
     /// before it existed, which used 1.
     #[serde(default = "one_f64")]
     pub silhouette_probe: f64,
@@ -284,7 +286,7 @@ impl Settings {
             validation_share: 0.1,
             // Grazing and near-critical rays are dropped: their decoded points lie off the
             // centre ray's, outward; not where the decoded cell is fine, as on flat faces seen
-            // edge-on (docs/decisions.md).
+            // edge-on (docs/decisions.md#faces-no-ray-sees-the-membrane-term).
             min_cos: 0.3,
             grazing_cell_footprints: 3.0,
             footprint: 1,
@@ -312,10 +314,12 @@ impl Settings {
                 silhouette_views: 8,
                 remesh_iterations: 10,
                 // Rays a camera pixel's width apart at the object about as far as its finest
-                // edge: 2×2 where a pixel spans 1.5 finest edges or more (docs/decisions.md).
+                // edge: 2×2 where a pixel spans 1.5 finest edges or more
+                // (docs/decisions.md#accurate-chooses-its-footprint-from-the-camera-pixel-at-the-object).
                 footprint: AUTO_FOOTPRINT,
                 // Its stages finer than about `balanced`'s second (1/155 of the diagonal) smooth
-                // as far in millimetres as that one (docs/decisions.md).
+                // as far in millimetres as that one
+                // (docs/decisions.md#accurates-fine-stages-regularisers-that-reach-as-far-in-millimetres).
                 smoothing_edge: 0.0065,
                 ..base
             },

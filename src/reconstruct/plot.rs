@@ -108,7 +108,8 @@ pub fn loss_plot(path: &Path, checkpoint: &Checkpoint) -> Result<()> {
 }
 
 /// The fit to the held-out views at the end of a stage: its iteration, the total and the
-/// refraction term (which decides between stages, docs/decisions.md).
+/// refraction term (which decides between stages,
+/// docs/decisions.md#the-result-stage-a-finer-stage-earns-its-place-view-by-view).
 #[derive(Clone, Copy)]
 struct HeldOutPoint {
     iteration: f64,

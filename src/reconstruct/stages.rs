@@ -26,7 +26,8 @@ pub(super) const THIN_SHARE: f64 = 0.02;
 
 /// Thin parts' thickness over the warm-up's largest edge: at edge t/1.5 a tube of diameter t
 /// has about 3π/2 ≈ 5 edges around. At the schedule's coarse start a tube as thick as the edge
-/// is a triangular prism, which DRT's steps flatten (the horse's tail: docs/decisions.md).
+/// is a triangular prism, which DRT's steps flatten (the horse's tail:
+/// docs/decisions.md#thin-parts-the-warm-ups-edge-and-the-monitors-cover).
 pub(super) const THIN_PART_EDGES: f64 = 1.5;
 
 /// Target edge length of stage `s` (index `k` in its own schedule `phase`), mm: the schedule's

@@ -262,7 +262,8 @@ fn lowest_total(done: &[super::StageReport], from: usize) -> Option<usize> {
 /// at 5 %) and the other not higher by as much. The pooled total can prefer a coarser stage
 /// because the held-out masks' outlines, not the shape, dominate its silhouette term, and that
 /// term's mean over contour edges changes with their number and zigzag at every edge length
-/// (docs/decisions.md): a finer stage must earn its place view by view. Where a record has no
+/// (docs/decisions.md#the-result-stage-a-finer-stage-earns-its-place-view-by-view):
+/// a finer stage must earn its place view by view. Where a record has no
 /// outline counts (an older checkpoint), the silhouette term stands in for them. False without
 /// per-view figures for the same views.
 pub fn fits_significantly_better(earlier: &ValidationRecord, later: &ValidationRecord) -> bool {
