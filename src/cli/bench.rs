@@ -1,6 +1,8 @@
 //! `glasscan bench …`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+
+use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
 use anyhow::Result;
 use clap::{Args, Subcommand};
@@ -186,8 +188,27 @@ pub fn run(cmd: &BenchCommand) -> Result<()> {
     }
 }
 
+/// Refuses a benchmark's output folder `work` or JSON file `json` that is, holds or lies in one
+/// of its `inputs`, and a JSON file without its extension.
+fn guard_outputs(work: Option<&Path>, json: Option<&Path>, inputs: &[&Path]) -> Result<()> {
+    let inputs: Vec<&Path> = inputs
+        .iter()
+        .copied()
+        .filter(|p| !p.as_os_str().is_empty())
+        .collect();
+    if let Some(w) = work {
+        ensure_output_spares_inputs(w, "--work", &inputs)?;
+    }
+    if let Some(j) = json {
+        ensure_extension(j, "--json", &["json"])?;
+        ensure_output_spares_inputs(j, "--json", &inputs)?;
+    }
+    Ok(())
+}
+
 fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
     use glasscan::bench::calibrated::{run_calibrated_bench, CalibratedBenchOptions};
+    guard_outputs(Some(&a.work), None, &[&a.meshes])?;
     let o = CalibratedBenchOptions {
         meshes: a.meshes.clone(),
         work: a.work.clone(),
@@ -216,6 +237,7 @@ fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
 
 fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
     use glasscan::bench::reconstruct::{run_bench, BenchOptions, Rig};
+    guard_outputs(Some(&a.work), None, &[&a.meshes])?;
     let o = BenchOptions {
         meshes: a.meshes.clone(),
         work: a.work.clone(),
@@ -245,6 +267,9 @@ fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
 
 fn run_gradient(a: &GradientArgs) -> Result<()> {
     use glasscan::loss::refraction::RefractionSettings;
+    let mut inputs = vec![a.scan.as_path()];
+    inputs.extend(a.mesh.as_deref());
+    guard_outputs(None, a.json.as_deref(), &inputs)?;
     if !(2..=glasscan::trace::path::MAX_TRAIL as u32).contains(&a.max_refractions) {
         anyhow::bail!(
             "--max-refractions {}: it must lie in 2..={}",
@@ -336,6 +361,11 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
 }
 
 fn run_trace(a: &TraceArgs) -> Result<()> {
+    guard_outputs(
+        None,
+        a.json.as_deref(),
+        &a.mesh.as_deref().into_iter().collect::<Vec<_>>(),
+    )?;
     let (name, mesh) = match &a.mesh {
         Some(p) => (p.display().to_string(), read_mesh(p)?),
         None => (
@@ -428,6 +458,7 @@ pub fn table(r: &TraceBenchReport, width: u32, height: u32) -> String {
 fn run_remesh(a: &RemeshBenchArgs) -> Result<()> {
     use super::remesh::{header, row};
     use glasscan::bench::remesh;
+    guard_outputs(Some(&a.work), a.json.as_deref(), &[&a.meshes])?;
     let cases = remesh::cases(&a.meshes, &a.edges_mm)?;
     match &a.python {
         Some(py) => eprintln!(

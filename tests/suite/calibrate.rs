@@ -533,53 +533,43 @@ fn turntable_fits_with_wrong_square_or_shuffled_angles_are_refused() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("tt.yml");
     let images = truth.dir.join("calibration/turntable/*.png");
-    let run_with = |square: &str, angles: &str| {
-        glasscan(&[
-            "calibrate",
-            "turntable",
-            "--images",
-            images.to_str().unwrap(),
-            "--board",
-            "9x6",
-            "--square-mm",
-            square,
-            &format!("--angles={angles}"),
-            "--camera",
-            truth.dir.join("camera.yml").to_str().unwrap(),
-            "--screen",
-            truth.dir.join("screen.yml").to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-        ])
+    let run_with = |square: &str, angles: &str, extra: &[&str]| {
+        let mut args = vec![
+            "calibrate".to_string(),
+            "turntable".into(),
+            "--images".into(),
+            images.to_str().unwrap().into(),
+            "--board".into(),
+            "9x6".into(),
+            "--square-mm".into(),
+            square.into(),
+            format!("--angles={angles}"),
+            "--camera".into(),
+            truth.dir.join("camera.yml").to_str().unwrap().into(),
+            "--screen".into(),
+            truth.dir.join("screen.yml").to_str().unwrap().into(),
+            "-o".into(),
+            out.to_str().unwrap().into(),
+        ];
+        args.extend(extra.iter().map(|a| a.to_string()));
+        glasscan(&args)
     };
-    let right = "-40,-30,-20,-10,0,10,20,30,40";
-    let o = run_with("10.9", right);
+    let (right, shuffled) = (
+        "-40,-30,-20,-10,0,10,20,30,40",
+        "-40,-30,-20,10,0,-10,20,30,40",
+    );
+    let o = run_with("10.9", right, &[]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     std::fs::remove_file(&out).unwrap();
-    refused(&run_with("25", right), "--square-mm is likely not");
+    refused(&run_with("25", right, &[]), "--square-mm is likely not");
     assert!(!out.exists());
     refused(
-        &run_with("10.9", "-40,-30,-20,10,0,-10,20,30,40"),
+        &run_with("10.9", shuffled, &[]),
         "the angles likely do not match the images",
     );
     assert!(!out.exists());
     // --force writes it, with the reason as a warning.
-    let o = run(Command::new(env!("CARGO_BIN_EXE_glasscan")).args([
-        "calibrate",
-        "turntable",
-        "--images",
-        images.to_str().unwrap(),
-        "--board",
-        "9x6",
-        "--square-mm",
-        "10.9",
-        "--angles=-40,-30,-20,10,0,-10,20,30,40",
-        "--camera",
-        truth.dir.join("camera.yml").to_str().unwrap(),
-        "--force",
-        "-o",
-        out.to_str().unwrap(),
-    ]));
+    let o = run_with("10.9", shuffled, &["--force"]);
     assert!(o.status.success() && out.exists());
     assert!(String::from_utf8_lossy(&o.stderr).contains("written anyway"));
 }

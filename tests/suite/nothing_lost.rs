@@ -124,10 +124,10 @@ fn outputs_over_inputs_are_refused() {
     let images = scan.join("captures/view_000/*.png");
     let image = scan.join("captures/view_000/00.png");
     let camera = scan.join("camera.yml");
-    let calibrate_camera = |out: &Path| {
-        glasscan(&[
+    let calibrate = |step: &str, out: &Path, extra: &[&str]| {
+        let mut args = vec![
             "calibrate",
-            "camera",
+            step,
             "--images",
             s(&images),
             "--board",
@@ -136,29 +136,41 @@ fn outputs_over_inputs_are_refused() {
             "25",
             "-o",
             s(out),
-        ])
+        ];
+        args.extend_from_slice(extra);
+        glasscan(&args)
     };
-    refused(&calibrate_camera(&image), "give it that extension");
+    refused(&calibrate("camera", &image, &[]), "give it that extension");
     refused(
-        &calibrate_camera(&dir.path().join("x.txt")),
+        &calibrate("camera", &dir.path().join("x.txt"), &[]),
         "give it that extension",
     );
-    let o = glasscan(&[
-        "calibrate",
+    let o = calibrate(
         "turntable",
-        "--images",
-        s(&images),
-        "--board",
-        "9x6",
-        "--square-mm",
-        "25",
-        "--angles=0",
-        "--camera",
-        s(&camera),
-        "-o",
-        s(&camera),
-    ]);
+        &camera,
+        &["--angles=0", "--camera", s(&camera)],
+    );
     refused(&o, "would overwrite the input");
+    // Benchmarks: a JSON report over the mesh, a work folder over the meshes.
+    let mesh = dir.path().join("m.ply");
+    glasscan::mesh::io::write_mesh(&mesh, &icosphere(10.0, 1)).unwrap();
+    let mesh_bytes = std::fs::read(&mesh).unwrap();
+    refused(
+        &glasscan(&["bench", "trace", "--mesh", s(&mesh), "--json", s(&mesh)]),
+        "give it that extension",
+    );
+    refused(
+        &glasscan(&[
+            "bench",
+            "calibrated",
+            "--meshes",
+            s(dir.path()),
+            "--work",
+            s(dir.path()),
+        ]),
+        "would overwrite the input",
+    );
+    assert_eq!(std::fs::read(&mesh).unwrap(), mesh_bytes);
     assert!(before == snapshot(&scan), "an input changed");
     assert!(!run.exists() && !h.exists());
 }
