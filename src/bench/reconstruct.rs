@@ -26,7 +26,7 @@ use crate::reconstruct::config::{Preset, Settings};
 use crate::reconstruct::pipeline::{reconstruct_scan, Job};
 use crate::reconstruct::plot::time_accuracy_plot;
 use crate::reconstruct::validation::best_stage;
-use crate::reconstruct::{self, stage_path, Existing, Progress, Start};
+use crate::reconstruct::{self, stage_path, CostProfile, Existing, Progress, Start};
 use crate::scan::Scan;
 use crate::simulate::{monitor_covers, simulated_scan, SimulateOptions, Transport};
 
@@ -202,6 +202,9 @@ pub struct BenchRun {
     pub faces: usize,
     /// (seconds since the start, accuracy mm) after the hull and after each stage.
     pub curve: Vec<(f64, f64)>,
+    /// Where the stages' time went, summed over the stages run.
+    #[serde(default)]
+    pub profile: CostProfile,
 }
 
 /// Object views of the scans.
@@ -475,6 +478,11 @@ fn run_one(
         fscore_1: f(1.0),
         faces: mesh.faces.len(),
         curve,
+        profile: CostProfile::total(
+            checkpoint.stages[..within]
+                .iter()
+                .map(|st| (&st.profile, st.refraction_rays_used)),
+        ),
     })
 }
 

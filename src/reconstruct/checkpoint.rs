@@ -49,6 +49,54 @@ pub struct StageReport {
     /// iteration (0: no unseen patch, or the term off).
     #[serde(default)]
     pub membrane_share: f64,
+    /// Where the stage's time went.
+    #[serde(default)]
+    pub profile: CostProfile,
+}
+
+/// Where a stage's wall time went, seconds, and how fast it traced.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CostProfile {
+    /// Remeshing to the stage's edge length.
+    pub remesh: f64,
+    /// The refraction term: tracing the sampled pixels' paths and their gradients.
+    pub refraction: f64,
+    /// The silhouette term: contour edges, their probe rays and gradients.
+    pub silhouette: f64,
+    /// The smoothness and membrane terms.
+    pub regularisers: f64,
+    /// The optimiser's steps, Large Steps' linear solves included.
+    pub step: f64,
+    /// Refitting the ray-tracing structure to the moved vertices.
+    pub refit: f64,
+    /// Fitting the held-out views (the stage's end; the judges' runs not included).
+    pub validation: f64,
+    /// Refraction rays used per second of the refraction term.
+    pub refraction_rays_per_s: f64,
+}
+
+impl CostProfile {
+    /// The sum of `profiles`, field by field; the ray rate over their summed refraction time.
+    pub fn total<'a>(profiles: impl IntoIterator<Item = (&'a CostProfile, usize)>) -> Self {
+        let mut t = CostProfile::default();
+        let mut rays = 0.0;
+        for (p, used) in profiles {
+            t.remesh += p.remesh;
+            t.refraction += p.refraction;
+            t.silhouette += p.silhouette;
+            t.regularisers += p.regularisers;
+            t.step += p.step;
+            t.refit += p.refit;
+            t.validation += p.validation;
+            rays += used as f64;
+        }
+        t.refraction_rays_per_s = if t.refraction > 0.0 {
+            rays / t.refraction
+        } else {
+            0.0
+        };
+        t
+    }
 }
 
 /// The state saved after every stage.

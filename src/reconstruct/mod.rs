@@ -30,7 +30,7 @@ use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::TriMesh;
 use crate::trace::thickness::thickness_quantile;
 pub use checkpoint::{
-    Checkpoint, IterationRecord, MembraneVerdict, StageReport, WarmUpVerdict, MEMBRANE_MIN_SHARE,
+    Checkpoint, CostProfile, IterationRecord, MembraneVerdict, StageReport, WarmUpVerdict, MEMBRANE_MIN_SHARE,
     MEMBRANE_SILHOUETTE_RATIO,
 };
 use config::Settings;

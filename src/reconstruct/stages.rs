@@ -18,6 +18,7 @@ use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
 
 use super::terms::*;
+use super::checkpoint::CostProfile;
 use super::{Checkpoint, Inputs, IterationRecord, Progress, StageReport};
 
 /// The share of the start mesh's area whose thickness is its "thin parts" (see
@@ -68,6 +69,7 @@ pub(super) fn run_next_stage(
         ..RemeshOptions::uniform(edge_mm)
     };
     let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
+    let seconds_remesh = t0.elapsed().as_secs_f64();
     let stages = checkpoint.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
     let (report, mean) = run_stage(
@@ -79,6 +81,7 @@ pub(super) fn run_next_stage(
         &mut checkpoint.history,
         progress,
     )?;
+    let t_validation = Instant::now();
     let (validation, averaged) =
         settle_stage((inputs, split), &mut mesh, mean, &checkpoint.settings)?;
     let report = StageReport {
@@ -86,6 +89,11 @@ pub(super) fn run_next_stage(
         degenerate_faces: check_stage_mesh(&mesh, s)?,
         validation,
         averaged,
+        profile: CostProfile {
+            remesh: seconds_remesh,
+            validation: t_validation.elapsed().as_secs_f64(),
+            ..report.profile
+        },
         ..report
     };
     progress.stage_end(&report);
@@ -148,18 +156,27 @@ pub(super) fn run_stage(
         .div_ceil(settings.refraction_views.max(1));
     let mut coverage = Coverage::new(mesh.positions.len(), warm_in);
     let mut membrane_share = 0.0f64;
+    let mut profile = CostProfile::default();
+    let timed = |t: &mut f64, start: Instant| *t += start.elapsed().as_secs_f64();
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(iteration_seed(settings.seed, s, it));
+        let t = Instant::now();
         let refraction = refraction_term(inputs, split, &surface, mesh, settings, &mut rng)?;
+        timed(&mut profile.refraction, t);
+        let t = Instant::now();
         let silhouette =
             silhouette_term(inputs, split, &surface, mesh, &edges, settings, &mut rng)?;
+        timed(&mut profile.silhouette, t);
+        let t = Instant::now();
         coverage.record(&refraction.grad);
         let (membrane, share) = membrane_term(mesh, &edges, &coverage, settings, edge_mm);
         membrane_share = membrane_share.max(share);
+        let smoothness = smoothness_term(mesh, &edges, settings);
+        timed(&mut profile.regularisers, t);
         let terms = Terms {
             refraction,
             silhouette,
-            smoothness: smoothness_term(mesh, &edges, settings),
+            smoothness,
             membrane,
         };
         used += terms.refraction.used;
@@ -169,11 +186,15 @@ pub(super) fn run_stage(
         last = record;
         history.push(last);
         progress.iteration(&last);
+        let t = Instant::now();
         let next = stepper.step(&mesh.positions, &grad);
+        timed(&mut profile.step, t);
         if let Some(bad) = next.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
             bail!("stage {s}, iteration {it}: vertex {bad} became non-finite (internal error; the last checkpoint is intact)");
         }
+        let t = Instant::now();
         surface.update_positions(&next)?;
+        timed(&mut profile.refit, t);
         mesh.positions = next;
         tail.add(it, &mesh.positions);
     }
@@ -192,6 +213,10 @@ pub(super) fn run_stage(
         averaged: false,
         unseen_share: coverage.unseen_share(),
         membrane_share,
+        profile: CostProfile {
+            refraction_rays_per_s: used as f64 / profile.refraction.max(1e-9),
+            ..profile
+        },
     };
     Ok((report, tail.mean()))
 }

@@ -330,6 +330,7 @@ mod tests {
             averaged: false,
             unseen_share: 0.0,
             membrane_share: 0.0,
+            profile: Default::default(),
         }
     }
 
