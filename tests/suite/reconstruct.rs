@@ -147,6 +147,26 @@ fn a_killed_run_resumes_to_the_same_result() {
         .min_by(|&a, &b| totals[a].total_cmp(&totals[b]))
         .unwrap();
     assert_eq!(report["result_stage"], best + 1, "{totals:?}");
+    // Each stage's cost profile accounts for its time: every part measured, none beyond the
+    // stage's wall time, and the refraction term traced its rays at a positive rate.
+    for s in report["stages"].as_array().unwrap() {
+        let p = &s["profile"];
+        let parts = [
+            "remesh",
+            "refraction",
+            "silhouette",
+            "regularisers",
+            "step",
+            "refit",
+            "validation",
+        ]
+        .map(|k| p[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {s}")));
+        let seconds = s["seconds"].as_f64().unwrap();
+        assert!(parts.iter().all(|&t| t >= 0.0), "{p}");
+        assert!(parts[1] > 0.0 && parts[6] > 0.0, "{p}");
+        assert!(parts.iter().sum::<f64>() <= seconds * 1.0001, "{p} over {seconds} s");
+        assert!(p["refraction_rays_per_s"].as_f64().unwrap() > 0.0, "{p}");
+    }
     assert_eq!(
         std::fs::read(out.join("result.ply")).unwrap(),
         std::fs::read(out.join(format!("stage_{best:02}.ply"))).unwrap()
