@@ -429,9 +429,10 @@ fn run_one(
     }
     let views = spread_views(case.views, scan.config.views.angles_deg.len());
     let t0 = Instant::now();
-    let (inputs, _) = reconstruct::load_inputs(scan, &views, &settings)?;
+    // The silhouettes alone: the run loads its targets itself.
+    let (silhouettes, _) = crate::hull::silhouettes(scan, &views)?;
     let (hull, _) = visual_hull(
-        &inputs.silhouettes,
+        &silhouettes,
         &HullOptions::default(),
         &crate::util::progress::Silent,
     )?;
