@@ -30,8 +30,8 @@ use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::TriMesh;
 use crate::trace::thickness::thickness_quantile;
 pub use checkpoint::{
-    Checkpoint, CostProfile, IterationRecord, MembraneVerdict, StageReport, WarmUpVerdict, MEMBRANE_MIN_SHARE,
-    MEMBRANE_SILHOUETTE_RATIO,
+    Checkpoint, CostProfile, IterationRecord, MembraneVerdict, StageReport, WarmUpVerdict,
+    MEMBRANE_MIN_SHARE, MEMBRANE_SILHOUETTE_RATIO,
 };
 use config::Settings;
 pub use inputs::{load_inputs, Inputs};

@@ -17,8 +17,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
 
-use super::terms::*;
 use super::checkpoint::CostProfile;
+use super::terms::*;
 use super::{Checkpoint, Inputs, IterationRecord, Progress, StageReport};
 
 /// The share of the start mesh's area whose thickness is its "thin parts" (see

@@ -164,7 +164,10 @@ fn a_killed_run_resumes_to_the_same_result() {
         let seconds = s["seconds"].as_f64().unwrap();
         assert!(parts.iter().all(|&t| t >= 0.0), "{p}");
         assert!(parts[1] > 0.0 && parts[6] > 0.0, "{p}");
-        assert!(parts.iter().sum::<f64>() <= seconds * 1.0001, "{p} over {seconds} s");
+        assert!(
+            parts.iter().sum::<f64>() <= seconds * 1.0001,
+            "{p} over {seconds} s"
+        );
         assert!(p["refraction_rays_per_s"].as_f64().unwrap() > 0.0, "{p}");
     }
     assert_eq!(
