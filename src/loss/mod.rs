@@ -1,6 +1,6 @@
 //! The losses of the optimisation and their exact gradients with respect to every vertex
 //! position (docs/architecture.md §4–5), written by hand: [`refraction`] (decoded monitor points,
-//! with [`bits`]: the measured Gray bits),
+//! with [`bits`]: the measured Gray bits, and [`sample`]: the pixels an iteration traces),
 //! [`silhouette`] (contour edges against the masks), [`smoothness`] (dihedral angles) and
 //! [`membrane`] (where the refraction data cannot see).
 //!
@@ -12,6 +12,7 @@ pub mod bits;
 pub mod diff;
 pub mod membrane;
 pub mod refraction;
+pub mod sample;
 pub mod silhouette;
 pub mod smoothness;
 pub mod targets;

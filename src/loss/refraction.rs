@@ -58,9 +58,10 @@ pub struct RefractionSettings {
     /// ray's); 0 keeps every ray with a usable derivative.
     #[serde(default)]
     pub min_cos: f64,
-    /// Pixels whose decoded cell is at most this many direct footprints wide
-    /// ([`PixelTarget::cell_footprints`]) keep their rays below `min_cos`: the glass then
-    /// magnified the pixel's footprint little, as a flat face seen edge-on does, whose rays are
+    /// Pixels whose decoded cell is at most this many direct footprints wide, or one monitor
+    /// pixel ([`PixelTarget::cell_px`], [`PixelTarget::direct_px`]), keep their rays below
+    /// `min_cos`: the glass then magnified the pixel's footprint little, as a flat face seen
+    /// edge-on does, whose rays are
     /// often all that holds it (they still pull outward, less than a curved rim's). 0:
     /// `min_cos` applies to every pixel.
     #[serde(default)]
@@ -106,23 +107,27 @@ impl PixelAxes {
 
 /// One object pixel of a view: its camera ray (world frame, unit direction), the decoded monitor
 /// point Q (world frame, mm), its weight, its measured Gray bits (none for imported rays) and
-/// the wider side of its decoded cell in direct footprints: over the width of a camera pixel's
-/// footprint on the monitor seen without the object, at Q's distance (infinite where unknown,
-/// as for imported rays).
+/// the wider side of its decoded cell and the width of the pixel's footprint on the monitor seen
+/// without the object (its direct footprint, at the decoded point's distance), both monitor
+/// pixels (the cell infinite where unknown, as for imported rays). Their ratio is how much the
+/// glass magnified the footprint, whatever the camera's resolution.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PixelTarget {
     pub dir: V3,
     pub target: Point3<f64>,
     pub weight: f64,
     pub bits: PixelBits,
-    pub cell_footprints: f32,
+    pub cell_px: f32,
+    pub direct_px: f32,
 }
 
 impl PixelTarget {
     /// The cos θ below which this pixel's rays are dropped (`min_cos`, or 0 for a pixel whose
-    /// decoded cell is fine enough: [`RefractionSettings::grazing_cell_footprints`]).
+    /// decoded cell is fine enough: [`RefractionSettings::grazing_cell_footprints`]; a fully
+    /// decoded cell, one monitor pixel, always is).
     fn min_cos(&self, s: &RefractionSettings) -> f64 {
-        if (self.cell_footprints as f64) <= s.grazing_cell_footprints {
+        let fine = (s.grazing_cell_footprints * self.direct_px as f64).max(1.0);
+        if s.grazing_cell_footprints > 0.0 && (self.cell_px as f64) <= fine {
             0.0
         } else {
             s.min_cos

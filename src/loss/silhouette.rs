@@ -3,20 +3,26 @@
 //! Per view: contour edges are mesh edges whose two faces face opposite ways from the camera
 //! centre. Both endpoints are projected (with the lens model); at the projected midpoint M two
 //! probe rays are cast at ±δ px along the edge's 2D normal N = (a_y − b_y, b_x − a_x), and
-//! f = hit(+) − hit(−) keeps only true, unoccluded contour edges (f ≠ 0). DRT's δ is 1 px; the
-//! presets' is 0.03 px (`silhouette_probe`), which also drops the edges a mesh's zigzag contour
-//! hides just inside its own outline: they would pull outward with nothing to balance them. The mask enters as its
+//! f = hit(+) − hit(−) keeps only true, unoccluded contour edges (f ≠ 0). The mask enters as its
 //! signed distance image sd (pixels, > 0 inside; see [`Silhouette`]).
 //!
-//! Two forms:
-//! - [`SilhouetteForm::Drt`]: loss |m(M) − 0.5| with m = 0.5 + 0.5·clamp(sd, −1, 1), and DRT's
-//!   image-space gradient on both endpoints, sign(sd)·f·N — a surrogate (it keeps pushing where
-//!   the loss is flat, beyond 1 px), pulled back to 3D with the depth held fixed. It points where
-//!   the exact gradient points but is not the derivative of anything, so it has no
+//! Distances are measured in the *outline unit* u, a length at the object (mm; the run's is a
+//! share of the start mesh's diagonal, `silhouette_scale`), not in camera pixels: per view,
+//! k = u·f / z pixels make one unit (f the focal length in pixels, z the depth of the mesh's
+//! bounding-box centre, held fixed within an evaluation), so the same offset at the object costs
+//! the same at every camera resolution. DRT's δ is 1 unit (DRT's 1 px); the presets' is 0.03
+//! (`silhouette_probe`), which also drops the edges a mesh's zigzag contour hides just inside
+//! its own outline: they would pull outward with nothing to balance them.
+//!
+//! Two forms, with s = sd(M) / k:
+//! - [`SilhouetteForm::Drt`]: loss |m(M) − 0.5| with m = 0.5 + 0.5·clamp(s, −1, 1), and DRT's
+//!   image-space gradient on both endpoints, sign(sd)·f·N / k² — a surrogate (it keeps pushing
+//!   where the loss is flat, beyond 1 unit), pulled back to 3D with the depth held fixed. It
+//!   points where the exact gradient points but is not the derivative of anything, so it has no
 //!   finite-difference test; a test checks its direction instead.
-//! - [`SilhouetteForm::Distance`]: loss Huber(sd(M), 1 px) — squared near the outline, linear
-//!   beyond — with its exact gradient through the bilinear sd image and the full projection
-//!   Jacobian (depth included). Checked against finite differences.
+//! - [`SilhouetteForm::Distance`]: loss Huber(s, 1) — squared near the outline, linear beyond —
+//!   with its exact gradient through the bilinear sd image and the full projection Jacobian
+//!   (depth included). Checked against finite differences.
 
 use nalgebra::{Point3, Vector2, Vector3};
 use rayon::prelude::*;
@@ -151,12 +157,30 @@ pub fn outline_disagreement(
     Ok(disagree + (sil.area_px - object_in_box))
 }
 
-/// Loss of one contour edge and the gradient on its two endpoints (world frame).
+/// Camera pixels per `unit_mm` at the object in view `sil`: at the depth of the bounding-box
+/// centre of `mesh` (1 when the centre is not in front of the camera).
+pub fn pixels_per_unit(mesh: &TriMesh, sil: &Silhouette, unit_mm: f64) -> f64 {
+    let Some((lo, hi)) = mesh.bbox() else {
+        return 1.0;
+    };
+    let z = (sil.pose * nalgebra::center(&lo, &hi)).z;
+    let f = 0.5 * (sil.camera.fx + sil.camera.fy);
+    let k = unit_mm * f / z;
+    if k.is_finite() && k > 0.0 {
+        k
+    } else {
+        1.0
+    }
+}
+
+/// Loss of one contour edge and the gradient on its two endpoints (world frame); `k` camera
+/// pixels make one outline unit ([`pixels_per_unit`]).
 pub fn edge_gradient(
     mesh: &TriMesh,
     sil: &Silhouette,
     e: &ContourEdge,
     form: SilhouetteForm,
+    k: f64,
 ) -> Option<(f64, [V3; 2])> {
     let cam_pts = e.verts.map(|v| sil.pose * mesh.positions[v as usize]);
     let [(a, ja), (b, jb)] = [
@@ -164,7 +188,8 @@ pub fn edge_gradient(
         sil.camera.project_jacobian(&cam_pts[1])?,
     ];
     let m = nalgebra::center(&a, &b);
-    let (sd, gx, gy) = sil.sample_px(m.x, m.y);
+    let (sd_px, gx, gy) = sil.sample_px(m.x, m.y);
+    let sd = sd_px / k;
     let rot_t = sil.pose.rotation.inverse();
     let (loss, grads) = match form {
         SilhouetteForm::Distance => {
@@ -173,8 +198,8 @@ pub fn edge_gradient(
             } else {
                 (2.0 * sd.abs() - 1.0, 2.0 * sd.signum())
             };
-            // M = (A + B)/2.
-            let g_img = Vector2::new(gx, gy) * (0.5 * dl);
+            // M = (A + B)/2; s = sd / k.
+            let g_img = Vector2::new(gx, gy) * (0.5 * dl / k);
             (
                 loss,
                 [
@@ -186,7 +211,7 @@ pub fn edge_gradient(
         SilhouetteForm::Drt => {
             let loss = 0.5 * sd.abs().min(1.0);
             let n = Vector2::new(a.y - b.y, b.x - a.x);
-            let g_img = n * (sd.signum() * e.side);
+            let g_img = n * (sd.signum() * e.side / (k * k));
             // Depth held fixed: u = fx·X/Z + cx moves with X and Y only.
             let pull = |q: &Point3<f64>| {
                 rot_t
@@ -203,23 +228,32 @@ pub fn edge_gradient(
         .then_some((loss, grads))
 }
 
+/// How the silhouette term measures: its form, its outline unit (mm at the object) and its
+/// probes' distance (outline units).
+#[derive(Clone, Copy, Debug)]
+pub struct SilhouetteSettings {
+    pub form: SilhouetteForm,
+    pub unit_mm: f64,
+    pub probe: f64,
+}
+
 /// Adds view `sil`'s silhouette loss and gradient to `acc`.
 pub fn add_view(
     mesh: &TriMesh,
     edges: &[InteriorEdge],
     sil: &Silhouette,
     scene: &Scene,
-    form: SilhouetteForm,
-    probe_px: f64,
+    s: &SilhouetteSettings,
     acc: &mut Accumulator,
 ) -> Result<(), TraceError> {
-    let contour = contour_edges(mesh, edges, sil, scene, probe_px)?;
+    let k = pixels_per_unit(mesh, sil, s.unit_mm);
+    let contour = contour_edges(mesh, edges, sil, scene, s.probe * k)?;
     let chunks: Vec<Contributions> = contour
         .par_chunks(1024)
         .map(|chunk| {
             let mut c = Contributions::default();
             for e in chunk {
-                match edge_gradient(mesh, sil, e, form) {
+                match edge_gradient(mesh, sil, e, s.form, k) {
                     Some((loss, g)) => {
                         c.loss += loss;
                         c.used += 1;

@@ -39,19 +39,13 @@ impl TargetWeights {
     }
 }
 
-/// The wider side of decoded point `t`'s cell over the width of a camera pixel's footprint on
-/// the monitor seen directly, at the point's distance (the camera sits at the origin of the
-/// frame `scan.screen` is given in). Infinite (unknown) where that footprint is narrower than
-/// a monitor pixel: no cell is narrower than one, so the cell cannot tell how much the glass
-/// magnified the footprint.
-fn cell_footprints(scan: &Scan, t: &MonitorTarget) -> f32 {
+/// The width of a camera pixel's footprint on the monitor seen directly, at decoded point `t`'s
+/// distance (monitor pixels; the camera sits at the origin of the frame `scan.screen` is given
+/// in).
+fn direct_footprint_px(scan: &Scan, t: &MonitorTarget) -> f32 {
     let distance_mm = scan.screen.point(t.u, t.v).coords.norm();
     let pixel_rad = 2.0 / (scan.camera.fx + scan.camera.fy);
-    let footprint_px = distance_mm * pixel_rad / scan.screen.pitch_mm;
-    if footprint_px < 1.0 {
-        return f32::INFINITY;
-    }
-    (t.cell_u.max(t.cell_v) / footprint_px) as f32
+    (distance_mm * pixel_rad / scan.screen.pitch_mm) as f32
 }
 
 /// A decoded point's measured bits (none without contrasts).
@@ -73,9 +67,20 @@ pub fn scan_targets(
     views: &[usize],
     weights: TargetWeights,
 ) -> Result<(Vec<ViewTargets>, Vec<usize>)> {
+    scan_targets_with(scan, views, weights, |t| t)
+}
+
+/// [`scan_targets`], each view passed through `keep` as soon as it is read (a sample of it: a
+/// view's whole targets are held only while it is read).
+pub fn scan_targets_with<T: Send>(
+    scan: &Scan,
+    views: &[usize],
+    weights: TargetWeights,
+    keep: impl Fn(ViewTargets) -> T + Sync,
+) -> Result<(Vec<T>, Vec<usize>)> {
     let decoded = DecodedScan::open(&scan.dir, (scan.camera.width, scan.camera.height))?;
     let poses = scan.view_poses();
-    let loaded: Vec<Result<Option<ViewTargets>>> = views
+    let loaded: Vec<Result<Option<T>>> = views
         .par_iter()
         .map(|&k| {
             let Some(dv) = decoded.view(k)? else {
@@ -92,7 +97,8 @@ pub fn scan_targets(
                         target: to_world * r.target,
                         weight: 1.0,
                         bits: PixelBits::default(),
-                        cell_footprints: f32::INFINITY,
+                        cell_px: f32::INFINITY,
+                        direct_px: f32::NAN,
                     })
                     .collect()
             } else {
@@ -108,12 +114,13 @@ pub fn scan_targets(
                             target: screen.point(t.u, t.v),
                             weight: weights.weight(t),
                             bits: pixel_bits(t, dv.contrasts.as_ref().map(|c| c[i])),
-                            cell_footprints: cell_footprints(scan, t),
+                            cell_px: t.cell_u.max(t.cell_v) as f32,
+                            direct_px: direct_footprint_px(scan, t),
                         })
                     })
                     .collect()
             };
-            Ok(Some(ViewTargets {
+            Ok(Some(keep(ViewTargets {
                 view: k,
                 eye: to_world * nalgebra::Point3::origin(),
                 monitor_point: screen.point(0.0, 0.0),
@@ -128,7 +135,7 @@ pub fn scan_targets(
                     forward: to_world * Vector3::z(),
                 }),
                 pixels,
-            }))
+            })))
         })
         .collect();
     let mut out = Vec::new();

@@ -93,8 +93,13 @@ pub struct Settings {
     /// Views per iteration for the refraction and silhouette terms.
     pub refraction_views: usize,
     pub silhouette_views: usize,
-    /// Every `pixel_stride`-th object pixel of a view is used (random offset per iteration).
-    pub pixel_stride: usize,
+    /// How far apart (share of the current mesh's bounding-box diagonal) the refraction rays
+    /// of a view lie at the object: each iteration draws that share of a view's decoded pixels
+    /// that puts them so far apart, (pixel / spacing)² at the depth of the mesh's centre (all
+    /// where the pixels are coarser), systematically from a random offset, each weighted by the
+    /// inverse of the share (unbiased sums). The ray count then follows the scene, not the
+    /// camera's pixel count (docs/decisions.md#rays-that-follow-the-scene).
+    pub ray_spacing: f64,
     pub normals: NormalModel,
     pub residual: ResidualForm,
     pub robust: Robust,
@@ -108,8 +113,8 @@ pub struct Settings {
     /// (bounded per-ray influence; 0: only those without a usable derivative).
     pub min_cos: f64,
     /// Pixels whose decoded cell is at most this many direct footprints wide (a camera pixel's
-    /// footprint on the monitor seen without the object) keep their rays below `min_cos` (0:
-    /// none do; absent in reports written before it existed).
+    /// footprint on the monitor seen without the object), or one monitor pixel, keep their rays
+    /// below `min_cos` (0: none do; absent in reports written before it existed).
     #[serde(default)]
     pub grazing_cell_footprints: f64,
     /// Refraction rays per pixel side: a pixel is modelled by the mean residual of an n×n grid
@@ -161,15 +166,27 @@ pub struct Settings {
     /// whose dihedral angles on a given bend shrink with the edge. 0: the same in every stage.
     #[serde(default)]
     pub smoothing_edge: f64,
-    /// How far (camera pixels) beside a contour edge's projected midpoint its two probe rays
-    /// look: the edge counts only if the mesh is hit on one side and missed on the other, so
-    /// only edges within this distance of the mesh's own outline pull on the silhouettes. An
-    /// edge hidden just inside the outline (the contour of a mesh zigzags) would pull outward
-    /// with nothing to balance it
-    /// (docs/decisions.md#the-silhouettes-probes-and-the-holes-the-decoder-filled).
-    /// DRT's: 1; absent from reports written
-    /// before it existed, which used 1.
+    /// Edges that follow the surface: in the stages after the warm-up, the remesh gives each
+    /// place the edge whose chord deviates from the current surface's curvature by this share
+    /// of the stage's edge, between the stage's edge (where the surface bends) and
+    /// `sizing_max_edge` times it (where it is flat) ([`crate::remesh::AdaptiveSizing`]). 0:
+    /// every edge the stage's.
+    #[serde(default)]
+    pub sizing_error: f64,
+    /// The longest edge of a stage with `sizing_error`, as a multiple of its edge.
     #[serde(default = "one_f64")]
+    pub sizing_max_edge: f64,
+    /// The silhouette term's unit of distance at the object, as a share of the current mesh's
+    /// bounding-box diagonal: its loss is squared within one unit of the outline and linear
+    /// beyond ([`crate::loss::silhouette`]), the same at every camera resolution. The presets'
+    /// 1/250 is a camera pixel of a 640×480 view of an object filling a quarter of its height.
+    pub silhouette_scale: f64,
+    /// How far (outline units, `silhouette_scale`) beside a contour edge's projected midpoint
+    /// its two probe rays look: the edge counts only if the mesh is hit on one side and missed
+    /// on the other, so only edges within this distance of the mesh's own outline pull on the
+    /// silhouettes. An edge hidden just inside the outline (the contour of a mesh zigzags)
+    /// would pull outward with nothing to balance it
+    /// (docs/decisions.md#the-silhouettes-probes-and-the-holes-the-decoder-filled). DRT's: 1.
     pub silhouette_probe: f64,
 }
 
@@ -182,6 +199,12 @@ impl Optimizer {
         self
     }
 }
+
+/// Settings of earlier versions, in camera pixels, and what replaced them.
+const RETIRED: [(&str, &str); 1] = [(
+    "pixel_stride",
+    "use ray_spacing (how far apart the rays lie at the object, a share of the diagonal)",
+)];
 
 /// `footprint = 0`: rays per pixel side chosen by the run ([`Settings::resolve_footprint`]).
 pub const AUTO_FOOTPRINT: u32 = 0;
@@ -274,7 +297,7 @@ impl Settings {
             weight_smoothness: 0.05,
             refraction_views: 2,
             silhouette_views: 4,
-            pixel_stride: 2,
+            ray_spacing: 1.0 / 180.0,
             normals: NormalModel::Vertex,
             residual: ResidualForm::Direction,
             robust: Robust::Cauchy(0.2),
@@ -295,6 +318,9 @@ impl Settings {
             average_share: 0.5,
             weight_membrane: 10.0,
             smoothing_edge: 0.0,
+            sizing_error: 0.0,
+            sizing_max_edge: 1.0,
+            silhouette_scale: 1.0 / 250.0,
             silhouette_probe: 0.03,
         };
         match preset {
@@ -321,6 +347,10 @@ impl Settings {
                 // as far in millimetres as that one
                 // (docs/decisions.md#accurates-fine-stages-regularisers-that-reach-as-far-in-millimetres).
                 smoothing_edge: 0.0065,
+                // Edges that follow the surface: 1 to 3 times the stage's edge
+                // (docs/decisions.md#accurate-edges-that-follow-the-surface).
+                sizing_error: 0.02,
+                sizing_max_edge: 3.0,
                 ..base
             },
             // DRT's schedule, optimiser and terms. DRT sums its terms (weights 40·217.5/H² per
@@ -343,7 +373,7 @@ impl Settings {
                 weight_smoothness: 1100.0,
                 refraction_views: 1,
                 silhouette_views: 8,
-                pixel_stride: 1,
+                ray_spacing: 1.0 / 250.0,
                 normals: NormalModel::Face,
                 residual: ResidualForm::Direction,
                 robust: Robust::L2,
@@ -368,6 +398,9 @@ impl Settings {
         let over: toml::Table = toml::from_str(toml_text).map_err(|e| e.message().to_string())?;
         let table = value.as_table_mut().expect("settings serialise to a table");
         for (k, v) in over {
+            if let Some((_, instead)) = RETIRED.iter().find(|(old, _)| *old == k) {
+                return Err(format!("setting '{k}' was retired: {instead}"));
+            }
             if !table.contains_key(&k) {
                 return Err(format!(
                     "unknown setting '{k}' (settings: {})",
@@ -419,8 +452,14 @@ impl Settings {
                 "need 0 < final_edge ≤ start_edge ≤ 1 (shares of the diagonal)",
             );
         }
-        if self.refraction_views == 0 || self.pixel_stride == 0 {
-            return bad("refraction_views/pixel_stride", "must be at least 1");
+        if self.refraction_views == 0 {
+            return bad("refraction_views", "must be at least 1");
+        }
+        if !(self.ray_spacing > 0.0 && self.ray_spacing <= 0.1) {
+            return bad(
+                "ray_spacing",
+                "must lie in (0, 0.1] (a share of the diagonal)",
+            );
         }
         if !(0.0..0.5).contains(&self.min_cos) {
             return bad("min_cos", "must lie in [0, 0.5)");
@@ -433,6 +472,18 @@ impl Settings {
         }
         if !(0.0..1.0).contains(&self.average_share) {
             return bad("average_share", "must lie in [0, 1)");
+        }
+        if !(0.0..=1.0).contains(&self.sizing_error) {
+            return bad(
+                "sizing_error",
+                "must lie in [0, 1] (a share of the stage's edge; 0: off)",
+            );
+        }
+        if !(1.0..=10.0).contains(&self.sizing_max_edge) {
+            return bad(
+                "sizing_max_edge",
+                "must lie in [1, 10] (a multiple of the stage's edge)",
+            );
         }
         if !(0.0..=1.0).contains(&self.smoothing_edge) {
             return bad(
@@ -470,10 +521,16 @@ impl Settings {
             }
             _ => {}
         }
+        if !(self.silhouette_scale > 0.0 && self.silhouette_scale <= 0.1) {
+            return bad(
+                "silhouette_scale",
+                "must lie in (0, 0.1] (a share of the diagonal)",
+            );
+        }
         if !(self.silhouette_probe > 0.0 && self.silhouette_probe <= 4.0) {
             return bad(
                 "silhouette_probe",
-                "the probe distance must lie in (0, 4] camera pixels",
+                "the probe distance must lie in (0, 4] outline units (silhouette_scale)",
             );
         }
         if let Smoothness::Tolerant { tau } = self.smoothness {

@@ -1,30 +1,57 @@
 //! What a run reads from the scan, loaded once: refraction targets, silhouettes, and the
 //! fingerprint of the files they came from.
+//!
+//! A view's targets are kept as a fixed sample that puts its rays half `ray_spacing` apart at
+//! the object ([`STORED_DENSITY`] times as dense as an iteration's sample), so that memory, like
+//! the rays, follows the object and not the camera's pixel count
+//! (docs/decisions.md#rays-that-follow-the-scene).
 
 use super::config::Settings;
 use crate::loss::refraction::ViewTargets;
 use crate::scan::silhouette::Silhouette;
 use anyhow::{bail, Result};
+use nalgebra::Point3;
+
+/// How many times as dense as an iteration's sample the kept targets are (per area): an
+/// iteration draws a quarter of them where the camera's pixels are finer than the kept spacing.
+pub const STORED_DENSITY: f64 = 4.0;
 
 /// What the optimisation reads from the scan, loaded once.
 pub struct Inputs {
     pub ior: f64,
     pub targets: Vec<ViewTargets>,
+    /// Per view of `targets`, the share of its decoded pixels kept (their weights carry its
+    /// inverse).
+    pub kept_shares: Vec<f64>,
     pub silhouettes: Vec<Silhouette>,
     /// What the inputs were read from ([`fingerprint`]); a run resumes only from the same.
     pub fingerprint: super::fingerprint::Fingerprint,
 }
 
-/// Loads the decoded targets (weighted by `settings.target_weights`) and silhouettes of `views`,
-/// with warnings: views without refraction data, a per-bit term without contrasts to read.
+/// Loads the decoded targets of `views` (weighted by `settings.target_weights`), each view's
+/// kept as a sample for an object of bounding-box diagonal `diagonal_mm` (the start mesh's), with
+/// `silhouettes` and warnings: views without refraction data, a per-bit term without contrasts
+/// to read.
 pub fn load_inputs(
     scan: &crate::scan::Scan,
     views: &[usize],
     settings: &Settings,
+    (silhouettes, mut warnings): (Vec<Silhouette>, Vec<String>),
+    diagonal_mm: f64,
 ) -> Result<(Inputs, Vec<String>)> {
     let weights = settings.target_weights;
-    let (silhouettes, mut warnings) = crate::hull::silhouettes(scan, views)?;
-    let (targets, skipped) = crate::loss::targets::scan_targets(scan, views, weights)?;
+    let spacing_mm = settings.ray_spacing * diagonal_mm / STORED_DENSITY.sqrt();
+    let keep = |t: ViewTargets| {
+        // At the camera's height on the turntable axis (the world frame's y axis).
+        let share = t.share_for_spacing(&Point3::new(0.0, t.eye.y, 0.0), spacing_mm);
+        if share < 1.0 {
+            (t.sampled(share, 0.5), share)
+        } else {
+            (t, 1.0)
+        }
+    };
+    let (targets, skipped) = crate::loss::targets::scan_targets_with(scan, views, weights, keep)?;
+    let (targets, kept_shares): (Vec<ViewTargets>, Vec<f64>) = targets.into_iter().unzip();
     if targets.is_empty() {
         bail!("no decoded view to reconstruct from");
     }
@@ -48,6 +75,7 @@ pub fn load_inputs(
         Inputs {
             ior: scan.config.ior,
             targets,
+            kept_shares,
             silhouettes,
             fingerprint: super::fingerprint::of_scan(scan, views)?,
         },

@@ -28,6 +28,7 @@ use crate::hull::{visual_hull, HullOptions};
 use crate::loss::refraction::ViewTargets;
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::TriMesh;
+use crate::scan::silhouette::Silhouette;
 use crate::trace::thickness::thickness_quantile;
 pub use checkpoint::{
     Checkpoint, CostProfile, IterationRecord, MembraneVerdict, StageReport, WarmUpVerdict,
@@ -38,6 +39,7 @@ pub use inputs::{load_inputs, Inputs};
 use judges::*;
 use output::commit;
 pub use output::{checkpoint_path, stage_path, Existing};
+pub use stages::remesh_options;
 use stages::*;
 use validation::Split;
 
@@ -47,6 +49,28 @@ pub enum Start<'a> {
     Hull(HullOptions),
     /// A given mesh, world frame, mm (`start.ply`).
     Mesh(&'a TriMesh),
+}
+
+/// A fresh run's start mesh (world frame, mm) and the name of the file it is written to.
+pub struct StartMesh {
+    pub mesh: TriMesh,
+    pub name: &'static str,
+}
+
+impl Start<'_> {
+    /// The start mesh: the visual hull of `silhouettes`, or the given mesh.
+    pub fn mesh(self, silhouettes: &[Silhouette]) -> Result<StartMesh> {
+        Ok(match self {
+            Start::Hull(o) => StartMesh {
+                mesh: visual_hull(silhouettes, &o, &crate::util::progress::Silent)?.0,
+                name: "hull.ply",
+            },
+            Start::Mesh(m) => StartMesh {
+                mesh: m.clone(),
+                name: "start.ply",
+            },
+        })
+    }
 }
 
 /// Progress callbacks of [`run`].
@@ -78,7 +102,7 @@ struct Finished {
 /// ends the run after the current stage's commit.
 fn run(
     inputs: &Inputs,
-    start: Start,
+    start: Option<StartMesh>,
     settings: &Settings,
     out: &Path,
     existing: Existing,
@@ -88,7 +112,10 @@ fn run(
     settings.check().map_err(anyhow::Error::msg)?;
     let (mut checkpoint, mut mesh) = match existing {
         Existing::Run(checkpoint) => continue_run(*checkpoint, inputs, settings, out)?,
-        Existing::Nothing => begin_run(inputs, start, settings, out, progress)?,
+        Existing::Nothing => {
+            let start = start.context("internal error: a fresh run without a start mesh")?;
+            begin_run(inputs, start, settings, out, progress)?
+        }
     };
     let stages = settings.total_stages();
     let split = Split::new(inputs, settings.validation_share);
@@ -124,18 +151,11 @@ fn run(
 /// done, with the settings' footprint resolved.
 fn begin_run(
     inputs: &Inputs,
-    start: Start,
+    StartMesh { mesh, name }: StartMesh,
     settings: &Settings,
     out: &Path,
     progress: &dyn Progress,
 ) -> Result<(Checkpoint, TriMesh)> {
-    let (mesh, name) = match start {
-        Start::Hull(o) => {
-            let (hull, _) = visual_hull(&inputs.silhouettes, &o, &crate::util::progress::Silent)?;
-            (hull, "hull.ply")
-        }
-        Start::Mesh(m) => (m.clone(), "start.ply"),
-    };
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     write_mesh(&out.join(name), &mesh)?;
     let checkpoint = Checkpoint {
@@ -239,6 +259,7 @@ mod tests {
         let inputs = Inputs {
             ior: 1.5,
             targets: Vec::new(),
+            kept_shares: Vec::new(),
             silhouettes: Vec::new(),
             fingerprint: Default::default(),
         };
@@ -295,10 +316,12 @@ mod tests {
                     target: Point3::new(0.0, 0.0, -300.0),
                     weight: 1.0,
                     bits,
-                    cell_footprints: 1.0,
+                    cell_px: 1.0,
+                    direct_px: 1.0,
                 }],
                 ..view_down_z(100.0, (500.0, 500.0))
             }],
+            kept_shares: vec![1.0],
             silhouettes: Vec::new(),
             fingerprint: Default::default(),
         };

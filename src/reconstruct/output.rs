@@ -75,10 +75,22 @@ fn folder_entries(out: &Path) -> Result<Vec<String>> {
     Ok(names)
 }
 
-/// Reads the committed checkpoint of `out`, if there is a readable one.
-pub fn read_checkpoint(out: &Path) -> Option<Checkpoint> {
-    let text = std::fs::read_to_string(checkpoint_path(out)).ok()?;
-    serde_json::from_str(&text).ok()
+/// Reads the committed checkpoint of `out`: `None` when there is none, an error naming the
+/// file when it cannot be read or parsed (written by another glasscan version, or damaged).
+fn read_checkpoint(out: &Path) -> Result<Option<Checkpoint>> {
+    let path = checkpoint_path(out);
+    let text = match std::fs::read_to_string(&path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => bail!("cannot read {}: {e}", path.display()),
+    };
+    serde_json::from_str(&text).map(Some).map_err(|e| {
+        anyhow::anyhow!(
+            "{} cannot be read ({e}): it was written by another glasscan version or is damaged; \
+             finish that run with the version that made it, or start it over with --force",
+            path.display()
+        )
+    })
 }
 
 /// Commits `checkpoint` as the state of the run in `out` (atomically).
@@ -124,7 +136,10 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
             out.display()
         );
     }
-    let committed = read_checkpoint(out);
+    let committed = match read_checkpoint(out) {
+        Err(_) if force => None,
+        other => other?,
+    };
     match committed {
         Some(checkpoint) if resume && !force => Ok(Existing::Run(Box::new(checkpoint))),
         Some(checkpoint) if !force => bail!(

@@ -58,15 +58,21 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         out,
         existing,
     } = job;
-    let (inputs, warnings) = load_inputs(scan, &views, &settings)?;
+    let silhouettes = crate::hull::silhouettes(scan, &views)?;
+    let (start, diagonal_mm) = match &existing {
+        Existing::Run(checkpoint) => (None, checkpoint.diagonal_mm),
+        Existing::Nothing => {
+            if matches!(start, Start::Hull(_)) {
+                progress.note(&format!("visual hull of {} views ...", silhouettes.0.len()));
+            }
+            let start = start.mesh(&silhouettes.0)?;
+            let diagonal_mm = start.mesh.bbox_diagonal();
+            (Some(start), diagonal_mm)
+        }
+    };
+    let (inputs, warnings) = load_inputs(scan, &views, &settings, silhouettes, diagonal_mm)?;
     for w in &warnings {
         progress.note(&format!("warning: {w}"));
-    }
-    if matches!(existing, Existing::Nothing) && matches!(start, Start::Hull(_)) {
-        progress.note(&format!(
-            "visual hull of {} views ...",
-            inputs.silhouettes.len()
-        ));
     }
     let finished = run(&inputs, start, &settings, out, existing, progress, stop)?;
     if !finished.complete {

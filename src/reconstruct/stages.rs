@@ -8,7 +8,7 @@ use super::validation::{validate_mesh, Split, ValidationRecord};
 use crate::loss::Drops;
 use crate::mesh::validate::{validate, Defect};
 use crate::mesh::TriMesh;
-use crate::remesh::{remesh, RemeshOptions};
+use crate::remesh::{remesh, AdaptiveSizing, RemeshOptions};
 use crate::trace::path::MeshSurface;
 use crate::trace::BuildMode;
 use anyhow::{bail, Context, Result};
@@ -42,6 +42,26 @@ pub(super) fn stage_edge_mm(checkpoint: &Checkpoint, phase: &Settings, s: usize,
     }
 }
 
+/// How a stage of settings `phase` remeshes to its edge `edge_mm`: uniformly, or (with
+/// `sizing_error`; the warm-up's `drt` settings have none) with edges from `edge_mm` where the
+/// surface bends to `sizing_max_edge` times it where it is flat.
+pub fn remesh_options(phase: &Settings, edge_mm: f64) -> RemeshOptions {
+    let adaptive = (phase.sizing_error > 0.0).then_some(AdaptiveSizing {
+        min_edge_mm: edge_mm,
+        max_error_mm: phase.sizing_error * edge_mm,
+    });
+    let max_edge = if adaptive.is_some() {
+        phase.sizing_max_edge
+    } else {
+        1.0
+    };
+    RemeshOptions {
+        iterations: phase.remesh_iterations,
+        adaptive,
+        ..RemeshOptions::uniform(edge_mm * max_edge)
+    }
+}
+
 /// Remeshes `mesh` to the next stage's edge length, runs that stage on the views `split` fits
 /// and measures the result on those it holds out; records it in `checkpoint`.
 pub(super) fn run_next_stage(
@@ -64,10 +84,7 @@ pub(super) fn run_next_stage(
             checkpoint.thin_part_mm.unwrap_or(f64::NAN)
         ));
     }
-    let opts = RemeshOptions {
-        iterations: phase.remesh_iterations,
-        ..RemeshOptions::uniform(edge_mm)
-    };
+    let opts = remesh_options(&phase, edge_mm);
     let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
     let seconds_remesh = t0.elapsed().as_secs_f64();
     let stages = checkpoint.settings.total_stages();

@@ -5,15 +5,16 @@ use super::config::Settings;
 use super::coverage::Coverage;
 use super::validation::Split;
 use crate::loss::membrane::add_membrane;
-use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
+use crate::loss::refraction::{add_view, RefractionSettings};
+use crate::loss::silhouette::{self, SilhouetteSettings};
 use crate::loss::smoothness::add_smoothness;
-use crate::loss::{silhouette, Accumulator, Drops};
+use crate::loss::{Accumulator, Drops};
 use crate::mesh::{InteriorEdge, TriMesh};
 use crate::trace::path::MeshSurface;
 use crate::trace::refract::IOR_AIR;
 use crate::util::scatter_seed;
 use anyhow::Result;
-use nalgebra::Vector3;
+use nalgebra::{Point3, Vector3};
 use rand::seq::index::sample;
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
@@ -88,7 +89,7 @@ impl Terms {
     }
 }
 
-/// The seed of the random choices (views, first pixels) of iteration `it` of the run's stage
+/// The seed of the random choices (views, sample offsets) of iteration `it` of the run's stage
 /// `s`: the run's seed scattered ([`scatter_seed`]), because with the bare seed `seed ^ it` two
 /// seeds below the iteration count shared their draws in another order (seed 1's iteration 0
 /// drew seed 0's iteration 1): runs with different seeds were not independent.
@@ -96,8 +97,8 @@ pub(super) fn iteration_seed(seed: u64, s: usize, it: usize) -> u64 {
     scatter_seed(seed) ^ ((s as u64) << 40) ^ it as u64
 }
 
-/// The refraction term over `refraction_views` random views of those `split` fits, every
-/// `pixel_stride`-th pixel from a random offset.
+/// The refraction term over `refraction_views` random views of those `split` fits, each a
+/// sample of its pixels from a random offset ([`refraction_over`]).
 pub(super) fn refraction_term(
     inputs: &Inputs,
     split: &Split,
@@ -108,20 +109,31 @@ pub(super) fn refraction_term(
 ) -> Result<TermValue> {
     let fit = &split.fit_targets;
     let k = settings.refraction_views.min(fit.len());
-    let views: Vec<(usize, usize)> = sample(rng, fit.len(), k)
+    let views: Vec<(usize, Sample)> = sample(rng, fit.len(), k)
         .into_iter()
-        .map(|v| (fit[v], rng.random_range(0..settings.pixel_stride)))
+        .map(|v| (fit[v], Sample::Offset(rng.random::<f64>())))
         .collect();
     refraction_over(inputs, surface, mesh, settings, &views)
 }
 
-/// The refraction term over `views` (target index, first pixel), every `pixel_stride`-th pixel.
+/// Which of a view's kept pixels a term traces.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum Sample {
+    /// The share of its decoded pixels that puts the rays `ray_spacing` of the mesh's diagonal
+    /// apart at the mesh's centre, drawn from those the run keeps from this offset in [0, 1)
+    /// ([`crate::loss::sample`]).
+    Offset(f64),
+    /// All it keeps (the held-out views' measure, which decides the result).
+    AllKept,
+}
+
+/// The refraction term over `views` (target index, which pixels).
 pub(super) fn refraction_over(
     inputs: &Inputs,
     surface: &MeshSurface,
     mesh: &TriMesh,
     settings: &Settings,
-    views: &[(usize, usize)],
+    views: &[(usize, Sample)],
 ) -> Result<TermValue> {
     let rs = RefractionSettings {
         ior: inputs.ior,
@@ -135,21 +147,29 @@ pub(super) fn refraction_over(
         footprint: settings.footprint,
         bit_weight: settings.weight_bits,
     };
+    let (centre, diagonal) = mesh.bbox().map_or((Point3::origin(), 0.0), |(lo, hi)| {
+        (nalgebra::center(&lo, &hi), (hi - lo).norm())
+    });
+    let spacing_mm = settings.ray_spacing * diagonal;
     let vn = surface.vertex_normals();
     let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
-    for &(v, offset) in views {
+    for &(v, sample) in views {
         let view = &inputs.targets[v];
-        let sub = ViewTargets {
-            pixels: view
-                .pixels
-                .iter()
-                .skip(offset)
-                .step_by(settings.pixel_stride)
-                .copied()
-                .collect(),
-            ..view.clone_empty()
-        };
-        add_view(surface, mesh, vn, &rs, &sub, &mut acc)?;
+        match sample {
+            Sample::Offset(offset) => {
+                // The share of the kept pixels (themselves a share of the decoded ones).
+                let share = view.share_for_spacing(&centre, spacing_mm) / inputs.kept_shares[v];
+                add_view(
+                    surface,
+                    mesh,
+                    vn,
+                    &rs,
+                    &view.sampled(share, offset),
+                    &mut acc,
+                )?;
+            }
+            Sample::AllKept => add_view(surface, mesh, vn, &rs, view, &mut acc)?,
+        }
     }
     Ok(TermValue::from(acc, mesh))
 }
@@ -187,6 +207,11 @@ pub(super) fn silhouette_over(
     settings: &Settings,
     views: &[usize],
 ) -> Result<TermValue> {
+    let s = SilhouetteSettings {
+        form: settings.silhouette,
+        unit_mm: settings.silhouette_scale * mesh.bbox_diagonal(),
+        probe: settings.silhouette_probe,
+    };
     let mut acc = Accumulator::new(mesh.positions.len(), false);
     for &v in views {
         silhouette::add_view(
@@ -194,8 +219,7 @@ pub(super) fn silhouette_over(
             edges,
             &inputs.silhouettes[v],
             surface.scene(),
-            settings.silhouette,
-            settings.silhouette_probe,
+            &s,
             &mut acc,
         )?;
     }

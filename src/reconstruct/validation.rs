@@ -1,13 +1,15 @@
 //! Held-out views: a share of the scan's views, spread evenly over the turntable, that the
 //! optimisation never sees. After every stage the mesh's fit to them is measured (the refraction
-//! and silhouette terms with the run's own residual forms and weights, over every
-//! `pixel_stride`-th pixel, and the pixels where the mesh's own outline and the held-out mask
+//! and silhouette terms with the run's own residual forms and weights, over every pixel the run
+//! keeps of them, and the pixels where the mesh's own outline and the held-out mask
 //! disagree), so a run knows without ground truth when a stage made it worse; the stage that
 //! fits them best becomes the result.
 
 use std::collections::BTreeMap;
 
 use anyhow::Result;
+
+use super::terms::Sample;
 use serde::{Deserialize, Serialize};
 
 use super::config::Settings;
@@ -160,7 +162,8 @@ pub fn validate_mesh(
     // Per view (sorted): the refraction and the silhouette term's sums, the outline's pixels.
     let mut views: BTreeMap<usize, ViewSums> = BTreeMap::new();
     for &t in &split.held_targets {
-        let term = super::terms::refraction_over(inputs, &surface, mesh, settings, &[(t, 0)])?;
+        let all = [(t, Sample::AllKept)];
+        let term = super::terms::refraction_over(inputs, &surface, mesh, settings, &all)?;
         let sums = &mut views.entry(inputs.targets[t].view).or_default().0;
         *sums = sums.add(Sums::of(&term));
     }

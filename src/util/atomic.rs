@@ -11,10 +11,7 @@ pub fn write_atomic<F>(path: &Path, fill: F) -> io::Result<()>
 where
     F: FnOnce(&mut dyn Write) -> io::Result<()>,
 {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
+    let dir = super::paths::parent_or_here(path);
     let tmp = tempfile::Builder::new()
         .prefix(".glasscan-")
         .suffix(".tmp")

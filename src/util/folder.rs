@@ -47,10 +47,7 @@ fn is_empty_folder(dir: &Path) -> Result<bool> {
 
 /// The folder holding `target` and `target`'s name.
 fn parent_and_name(target: &Path) -> Result<(PathBuf, String)> {
-    let parent = match target.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
+    let parent = super::paths::parent_or_here(target).to_path_buf();
     let name = target
         .file_name()
         .with_context(|| format!("{}: not a folder name", target.display()))?

@@ -24,10 +24,7 @@ pub fn lock_path(output: &Path) -> Result<PathBuf> {
     let name = output
         .file_name()
         .with_context(|| format!("{}: not a file or folder name", output.display()))?;
-    let parent = match output.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
+    let parent = super::paths::parent_or_here(output);
     Ok(parent.join(format!(".{}.glasscan.lock", name.to_string_lossy())))
 }
 

@@ -5,6 +5,14 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Result};
 
+/// The folder holding `path`: its parent, or `.` for a bare name.
+pub fn parent_or_here(path: &Path) -> &Path {
+    match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    }
+}
+
 /// `path` made absolute with its symbolic links resolved, as far as it exists (a file or folder
 /// still to be written keeps its own name under its resolved parent).
 fn resolved(path: &Path) -> PathBuf {
@@ -12,14 +20,7 @@ fn resolved(path: &Path) -> PathBuf {
         return p;
     }
     match (path.parent(), path.file_name()) {
-        (Some(parent), Some(name)) => {
-            let parent = if parent.as_os_str().is_empty() {
-                Path::new(".")
-            } else {
-                parent
-            };
-            resolved(parent).join(name)
-        }
+        (Some(_), Some(name)) => resolved(parent_or_here(path)).join(name),
         _ => path.to_path_buf(),
     }
 }
