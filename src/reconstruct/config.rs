@@ -347,10 +347,6 @@ impl Settings {
                 // as far in millimetres as that one
                 // (docs/decisions.md#accurates-fine-stages-regularisers-that-reach-as-far-in-millimetres).
                 smoothing_edge: 0.0065,
-                // Edges that follow the surface: 1 to 3 times the stage's edge
-                // (docs/decisions.md#accurate-edges-that-follow-the-surface).
-                sizing_error: 0.02,
-                sizing_max_edge: 3.0,
                 ..base
             },
             // DRT's schedule, optimiser and terms. DRT sums its terms (weights 40·217.5/H² per
