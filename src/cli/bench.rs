@@ -291,7 +291,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         glasscan::loss::targets::scan_targets(&scan, &views, Default::default())?;
     let load_s = t0.elapsed().as_secs_f64();
     let s = RefractionSettings {
-        ior: scan.config.ior,
+        ior: scan.config.ior.nominal(),
         ior_air: glasscan::trace::refract::IOR_AIR,
         max_refractions: a.max_refractions,
         normals: a.normals,

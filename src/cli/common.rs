@@ -136,18 +136,10 @@ pub fn positive_share(s: &str) -> Result<f64, String> {
     }
 }
 
-/// A solid object's refractive index: above 1 (air) and at most 4 (beyond any clear solid).
+/// A solid object's refractive index: above 1 (air), at most [`glasscan::scan::MAX_IOR`].
 pub fn ior(s: &str) -> Result<f64, String> {
     let v = finite(s)?;
-    let max = glasscan::scan::MAX_IOR;
-    if v > 1.0 && v <= max {
-        Ok(v)
-    } else {
-        Err(format!(
-            "{}: a solid transparent object's refractive index lies in (1, {max}] (glass ≈ 1.5)",
-            glasscan::util::short_number(v)
-        ))
-    }
+    glasscan::scan::Ior::known(v).map(|_| v)
 }
 
 /// A share in [0, 1] as f32 (decoder thresholds).

@@ -5,9 +5,12 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::Args;
 
-use glasscan::eval::error_map::{write_error_map, ErrorScale};
+use glasscan::eval::confidence::error_by_confidence;
+use glasscan::eval::error_map::{
+    confidence_legend, write_error_map, write_support_map, ErrorScale,
+};
 use glasscan::eval::{evaluate, EvalOptions, EvalReport};
-use glasscan::mesh::io::read_mesh;
+use glasscan::mesh::io::{read_mesh, read_mesh_with_quality};
 use glasscan::trace::{BuildMode, Device, Scene};
 use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
@@ -45,6 +48,10 @@ pub struct EvalArgs {
     /// reference, red where it lies outside.
     #[arg(long = "error-map-signed", requires = "error_map")]
     pub error_map_signed: bool,
+    /// Also write the result's confidence (its vertex quality, as reconstruct writes it) from the
+    /// error map's six sides, with its colour bar conventions (red: no support).
+    #[arg(long = "confidence-map")]
+    pub confidence_map: Option<PathBuf>,
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
@@ -53,11 +60,22 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         ensure_extension(p, "--json", &["json"])?;
         ensure_output_spares_inputs(p, "--json", &inputs)?;
     }
-    if let Some(p) = &args.error_map {
-        ensure_extension(p, "--error-map", &["png"])?;
-        ensure_output_spares_inputs(p, "--error-map", &inputs)?;
+    for (p, flag) in [
+        (&args.error_map, "--error-map"),
+        (&args.confidence_map, "--confidence-map"),
+    ] {
+        if let Some(p) = p {
+            ensure_extension(p, flag, &["png"])?;
+            ensure_output_spares_inputs(p, flag, &inputs)?;
+        }
     }
-    let result = read_mesh(&args.result)?;
+    let (result, quality) = read_mesh_with_quality(&args.result)?;
+    if args.confidence_map.is_some() && quality.is_none() {
+        bail!(
+            "--confidence-map: {} has no vertex quality (reconstruct's result.ply carries its confidence there)",
+            args.result.display()
+        );
+    }
     let reference = read_mesh(&args.reference)?;
     let options = EvalOptions {
         samples: usize::try_from(args.samples).unwrap_or(usize::MAX),
@@ -76,8 +94,28 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         reference.faces.len()
     );
     out!("{}", table(&report, args.seed));
+    let mut json = report.to_json();
+    if let Some(quality) = &quality {
+        let device = Device::new()?;
+        let by = error_by_confidence(
+            &result,
+            quality,
+            &Scene::new(&device, &reference, BuildMode::Static)?,
+        )?;
+        let [q1, q2, q3, q4] = by.quartiles_mm;
+        outln!(
+            "by confidence    {q1:.4} / {q2:.4} / {q3:.4} / {q4:.4} mm  (mean vertex error in each quarter of the area, least to most confident by the result's quality; {:.2}×)",
+            by.least_over_most
+        );
+        json["error_by_confidence"] = serde_json::to_value(by)?;
+        if let Some(path) = &args.confidence_map {
+            let scene = Scene::new(&device, &result, BuildMode::Static)?;
+            write_support_map(path, (&result, &scene), quality, confidence_legend(quality))?;
+            outln!("confidence map   {}", path.display());
+        }
+    }
     if let Some(path) = &args.json {
-        super::write_json(path, &report.to_json())?;
+        super::write_json(path, &json)?;
     }
     if let Some(path) = &args.error_map {
         let max_mm = args

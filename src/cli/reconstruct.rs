@@ -48,13 +48,20 @@ pub struct ReconstructArgs {
     /// Start from this mesh (world frame) instead of the visual hull.
     #[arg(long)]
     pub init: Option<PathBuf>,
+    /// The object's refractive index, overriding scan.toml's: a number (glass ≈ 1.5), auto
+    /// (estimated with the shape within 1.40–1.70), or auto:LO:HI.
+    #[arg(long)]
+    pub ior: Option<glasscan::scan::Ior>,
     /// Voxel size of the visual hull, mm.
     #[arg(long = "hull-voxel-mm", default_value_t = 1.0, value_parser = super::common::positive)]
     pub hull_voxel_mm: f64,
 }
 
 pub fn run(a: &ReconstructArgs) -> Result<()> {
-    let scan = super::common::open_scan(&a.scan)?;
+    let mut scan = super::common::open_scan(&a.scan)?;
+    if let Some(ior) = a.ior {
+        scan.config.ior = ior;
+    }
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
     let settings = settings(a)?;
     let mut inputs = scan.input_paths();
@@ -142,6 +149,28 @@ fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
         outcome.result.faces.len(),
         checkpoint.stages.iter().map(|s| s.seconds).sum::<f64>()
     );
+    if let Some(i) = &outcome.index {
+        let how = if i.given.is_auto() {
+            "estimated"
+        } else {
+            "given"
+        };
+        let fit = i.held_out_best.map_or(String::new(), |b| {
+            format!(
+                "; the held-out views fit {:.4} ± {:.4} best",
+                b.ior, b.spread
+            )
+        });
+        outln!("refractive index {:.4} ({how}){fit}", i.used);
+    }
+    if let Some(c) = &outcome.confidence {
+        outln!(
+            "support: {:.1} % of the area by refraction rays, {:.1} % by silhouettes only, {:.1} % by neither (confidence.png; result.ply's quality: rays per mm²)",
+            100.0 * c.refraction_share,
+            100.0 * c.silhouette_only_share,
+            100.0 * c.unconstrained_share
+        );
+    }
     if let Some(e) = &outcome.evaluation {
         outln!(
             "against the scan's ground truth: accuracy {:.3} mm, completeness {:.3} mm",

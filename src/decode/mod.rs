@@ -237,7 +237,7 @@ pub fn decode_scan(
         background: &background,
         background_capture: background_capture.as_ref(),
         code: &code,
-        ior: scan.config.ior,
+        ior: scan.config.ior.nominal(),
         o,
         fixed: &fixed,
     };

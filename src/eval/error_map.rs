@@ -2,7 +2,9 @@
 //! turntable's +y axis, then from above and below), every visible point coloured by its distance
 //! to the reference surface (mm; blue 0 → green → yellow → red at `max_mm` and beyond) or, signed,
 //! by which side of it the point lies (blue inside at −`max_mm` → grey on it → red outside at
-//! +`max_mm`), and shaded by how squarely it faces the viewer; a colour bar below.
+//! +`max_mm`), and shaded by how squarely it faces the viewer; a colour bar below. The support
+//! map draws a per-vertex measure of support (a result's confidence) the same way, red where
+//! nothing supports the surface.
 
 use std::path::Path;
 
@@ -126,8 +128,81 @@ pub fn write_error_map(
     scale: ErrorScale,
     max_mm: f64,
 ) -> Result<()> {
+    let colours = |seen: &[(u32, Point3<f64>)]| -> Result<Vec<[f64; 3]>> {
+        let points: Vec<Point3<f64>> = seen.iter().map(|s| s.1).collect();
+        let dist = reference.closest_points(&points)?;
+        Ok((points.iter().zip(&dist))
+            .map(|(q, c)| scale.bar_colour(scale.position(scale.distance(q, c), max_mm)))
+            .collect())
+    };
+    let (title, labels) = scale.legend(max_mm);
+    let bar = |f: f64| scale.bar_colour(f);
+    write_panels(
+        path,
+        (result, result_scene),
+        &colours,
+        (&bar, title, labels),
+    )
+}
+
+/// Renders `result` coloured by a per-vertex measure of support (`per_vertex`, in `unit`; each
+/// face shows its vertices' mean) with the error map's conventions: red where it is 0 (nothing
+/// supports the surface), blue at `max` and beyond; writes the PNG to `path` (atomically).
+pub fn write_support_map(
+    path: &Path,
+    (result, result_scene): (&TriMesh, &Scene),
+    per_vertex: &[f64],
+    (title, unit, max): (&str, &str, f64),
+) -> Result<()> {
+    let colours = |seen: &[(u32, Point3<f64>)]| -> Result<Vec<[f64; 3]>> {
+        Ok(seen
+            .iter()
+            .map(|&(prim, _)| {
+                let face = result.faces[prim as usize];
+                let v = face.iter().map(|&k| per_vertex[k as usize]).sum::<f64>() / 3.0;
+                colour(1.0 - v / max)
+            })
+            .collect())
+    };
+    let labels = [
+        format!(">= {max:.3} {unit}"),
+        format!("{:.3} {unit}", 0.5 * max),
+        format!("0 {unit}"),
+    ];
+    let bar = |f: f64| colour(f);
+    write_panels(
+        path,
+        (result, result_scene),
+        &colours,
+        (&bar, title, labels),
+    )
+}
+
+/// The legend of a map of refraction rays per mm² (`per_vertex`): its title, unit, and the
+/// value shown blue, twice the median over the vertices (at least 1).
+pub fn confidence_legend(per_vertex: &[f64]) -> (&'static str, &'static str, f64) {
+    let median = crate::util::median(per_vertex.to_vec());
+    (
+        "refraction rays per mm^2 at the surface (red: none; the mesh's vertex quality)",
+        "/mm^2",
+        (2.0 * median).max(1.0),
+    )
+}
+
+/// Colours of the visible points (triangle, point) of one panel, before shading.
+type PanelColours<'a> = &'a dyn Fn(&[(u32, Point3<f64>)]) -> Result<Vec<[f64; 3]>>;
+
+/// The six panels of `result` (through `result_scene`), each visible point coloured by
+/// `colours` and shaded by how squarely it faces the viewer, and the colour bar (its colour
+/// along [0, 1], title, labels at its left end, middle and right end); written to `path`.
+fn write_panels(
+    path: &Path,
+    (result, result_scene): (&TriMesh, &Scene),
+    colours: PanelColours,
+    (bar_colour, title, labels): (&dyn Fn(f64) -> [f64; 3], &str, [String; 3]),
+) -> Result<()> {
     let Some((lo, hi)) = result.bbox() else {
-        anyhow::bail!("the mesh has no vertices: no error map");
+        anyhow::bail!("the mesh has no vertices: no map");
     };
     let centre = nalgebra::center(&lo, &hi);
     let radius = 0.5 * (hi - lo).norm();
@@ -139,7 +214,7 @@ pub fn write_error_map(
         CV_8UC3,
         Scalar::all(255.0),
     )?;
-    for (k, (dir, up, title)) in views().into_iter().enumerate() {
+    for (k, (dir, up, panel_title)) in views().into_iter().enumerate() {
         let right = dir.cross(&up);
         let rays: Vec<Ray> = (0..PANEL * PANEL)
             .map(|p| {
@@ -150,40 +225,46 @@ pub fn write_error_map(
             })
             .collect();
         let hits = result_scene.intersect(&rays, true)?;
-        let seen: Vec<(usize, u32, Point3<f64>)> = rays
+        let (pixels, seen): (Vec<usize>, Vec<(u32, Point3<f64>)>) = rays
             .iter()
             .zip(&hits)
             .enumerate()
-            .filter_map(|(p, (r, h))| h.map(|h| (p, h.prim, r.origin + r.dir * h.t)))
-            .collect();
-        let points: Vec<Point3<f64>> = seen.iter().map(|s| s.2).collect();
-        let dist = reference.closest_points(&points)?;
+            .filter_map(|(p, (r, h))| h.map(|h| (p, (h.prim, r.origin + r.dir * h.t))))
+            .unzip();
         let (x0, y0) = ((k as i32 % cols) * PANEL, (k as i32 / cols) * PANEL);
-        for (&(p, prim, q), c) in seen.iter().zip(&dist) {
-            let d = scale.distance(&q, c);
-            let n = result.face_cross(prim as usize);
+        for ((p, (prim, _)), c) in pixels.iter().zip(&seen).zip(colours(&seen)?) {
+            let n = result.face_cross(*prim as usize);
             let facing = n.dot(&dir).abs() / n.norm().max(f64::MIN_POSITIVE);
             let shade = 0.35 + 0.65 * facing;
-            let c = scale
-                .bar_colour(scale.position(d, max_mm))
-                .map(|v| (v * shade) as u8);
-            *img.at_2d_mut::<Vec3b>(y0 + p as i32 / PANEL, x0 + p as i32 % PANEL)? = Vec3b::from(c);
+            let c = c.map(|v| (v * shade) as u8);
+            *img.at_2d_mut::<Vec3b>(y0 + *p as i32 / PANEL, x0 + *p as i32 % PANEL)? =
+                Vec3b::from(c);
         }
         label(
             &mut img,
-            title,
+            panel_title,
             Point::new(x0 + 10, y0 + 22),
             0.6,
             Scalar::all(0.0),
         )?;
     }
-    // Colour bar.
+    draw_bar(&mut img, (cols, rows), bar_colour, title, labels)?;
+    write_png(path, &img)
+}
+
+/// The colour bar below the panels of an image `cols` × `rows` panels large.
+fn draw_bar(
+    img: &mut Mat,
+    (cols, rows): (i32, i32),
+    bar_colour: &dyn Fn(f64) -> [f64; 3],
+    title: &str,
+    labels: [String; 3],
+) -> Result<()> {
     let (bx, by, bw, bh) = (60, rows * PANEL + 12, cols * PANEL - 120, 20);
-    let (title, labels) = scale.legend(max_mm);
     for i in 0..bw {
-        let c = scale.bar_colour(i as f64 / (bw - 1) as f64);
+        let c = bar_colour(i as f64 / (bw - 1) as f64);
         rectangle(
-            &mut img,
+            img,
             Rect::new(bx + i, by, 1, bh),
             Scalar::new(c[0], c[1], c[2], 0.0),
             -1,
@@ -194,21 +275,14 @@ pub fn write_error_map(
     for (f, text) in [0.0, 0.5, 1.0].into_iter().zip(labels) {
         let x = bx + (f * bw as f64) as i32 - 20;
         label(
-            &mut img,
+            img,
             &text,
             Point::new(x.min(cols * PANEL - 130), by + bh + 22),
             0.5,
             Scalar::all(0.0),
         )?;
     }
-    label(
-        &mut img,
-        title,
-        Point::new(bx, by - 2),
-        0.45,
-        Scalar::all(0.0),
-    )?;
-    write_png(path, &img)
+    label(img, title, Point::new(bx, by - 2), 0.45, Scalar::all(0.0))
 }
 
 #[cfg(test)]

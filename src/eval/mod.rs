@@ -13,6 +13,7 @@
 //! - DRT's figure: mean distance from the result's vertices to the reference surface (mm),
 //! - Hausdorff: the largest distance seen in either direction, vertices included (mm).
 
+pub mod confidence;
 pub mod error_map;
 pub mod fidelity;
 

@@ -442,7 +442,7 @@ fn imported_scan(
         })
         .collect();
     let config = ScanConfig {
-        ior,
+        ior: crate::scan::Ior::Known(ior),
         calibration: CalibrationFiles {
             camera: "camera.yml".into(),
             screen: "screen.yml".into(),

@@ -167,6 +167,14 @@ pub fn snell(d: &V3, n: &V3, eta: f64) -> Result<Snell, SnellFailure> {
     })
 }
 
+/// ∂L/∂η of [`snell`] given ∂L/∂out: ∂out/∂η = d + n (cos θi − ∂cos θt/∂η), with
+/// ∂cos θt/∂η = −η sin²θi / cos θt.
+#[inline]
+pub fn snell_eta_adjoint(s: &Snell, d: &V3, n: &V3, gout: &V3) -> f64 {
+    let dcos_t = -s.eta * (1.0 - s.cos_i * s.cos_i) / s.cos_t;
+    gout.dot(&(d + n * (s.cos_i - dcos_t)))
+}
+
 /// Adjoint of [`snell`]: adds ∂L/∂d and ∂L/∂n given ∂L/∂out.
 #[inline]
 pub fn snell_adjoint(s: &Snell, d: &V3, n: &V3, gout: &V3, gd: &mut V3, gn: &mut V3) {

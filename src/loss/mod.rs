@@ -123,6 +123,8 @@ pub struct Contributions {
     pub grad: Vec<(u32, V3)>,
     /// (vertex, ∂L/∂unit vertex normal) entries.
     pub ngrad: Vec<(u32, V3)>,
+    /// ∂L/∂ the object's refractive index.
+    pub ior: f64,
 }
 
 impl Contributions {
@@ -133,6 +135,7 @@ impl Contributions {
         self.weight += weight;
         self.grad.extend_from_slice(&g.grad);
         self.ngrad.extend_from_slice(&g.ngrad);
+        self.ior += g.ior;
     }
 }
 
@@ -147,9 +150,22 @@ pub struct Accumulator {
     pub drops: Drops,
     pub grad: Vec<V3>,
     pub normal_grad: Vec<V3>,
+    /// ∂L/∂ the object's refractive index.
+    pub ior: f64,
+    /// Per vertex, the position-gradient entries added (a ray's refraction at one of its faces,
+    /// a contour edge at it); kept only by [`Self::counting`], else empty.
+    pub touches: Vec<u32>,
 }
 
 impl Accumulator {
+    /// As [`Self::new`], also counting the entries each vertex receives ([`Self::touches`]).
+    pub fn counting(vertices: usize, vertex_normals: bool) -> Self {
+        Self {
+            touches: vec![0; vertices],
+            ..Self::new(vertices, vertex_normals)
+        }
+    }
+
     pub fn new(vertices: usize, vertex_normals: bool) -> Self {
         Self {
             loss: 0.0,
@@ -162,6 +178,8 @@ impl Accumulator {
             } else {
                 Vec::new()
             },
+            ior: 0.0,
+            touches: Vec::new(),
         }
     }
 
@@ -174,6 +192,7 @@ impl Accumulator {
             self.used += c.used;
             self.weight += c.weight;
             self.drops.add(&c.drops);
+            self.ior += c.ior;
         }
         // One part per thread: each part reads every entry, so more parts only add reading.
         let parts = rayon::current_num_threads();
@@ -195,6 +214,13 @@ impl Accumulator {
                     }
                 });
         };
+        if !self.touches.is_empty() {
+            for &(v, _) in chunks.iter().flat_map(|c| &c.grad) {
+                if let Some(t) = self.touches.get_mut(v as usize) {
+                    *t += 1;
+                }
+            }
+        }
         scatter(&mut self.grad, |c| &c.grad);
         scatter(&mut self.normal_grad, |c| &c.ngrad);
     }

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::bits::{self, PixelBits};
 use super::diff::{
     barycentric, barycentric_adjoint, normalize_adjoint, plane_hit, plane_hit_adjoint, snell,
-    snell_adjoint, PlaneHit, Snell, SnellFailure,
+    snell_adjoint, snell_eta_adjoint, PlaneHit, Snell, SnellFailure,
 };
 use super::{Accumulator, Contributions, Drops, Robust};
 use crate::mesh::TriMesh;
@@ -200,6 +200,8 @@ struct Interface {
     snell: Snell,
     /// |snell.out| before normalisation.
     out_norm: f64,
+    /// ∂η/∂(object's index): η = n_air / n entering, n / n_air leaving.
+    deta_dior: f64,
 }
 
 /// Why a pixel was dropped from the refraction term.
@@ -218,12 +220,14 @@ pub enum DropReason {
 }
 
 /// Loss of one pixel and its gradient, recorded into `grad` (vertex, ∂L/∂position) and
-/// `ngrad` (vertex, ∂L/∂unit vertex normal), an entry per triangle vertex a ray met.
+/// `ngrad` (vertex, ∂L/∂unit vertex normal), an entry per triangle vertex a ray met, and `ior`
+/// (∂L/∂ the object's refractive index).
 #[derive(Clone, Debug, Default)]
 pub struct PixelGradient {
     pub loss: f64,
     pub grad: Vec<(u32, V3)>,
     pub ngrad: Vec<(u32, V3)>,
+    pub ior: f64,
 }
 
 /// Everything the per-pixel computation reads about the current mesh.
@@ -288,6 +292,7 @@ pub fn footprint_gradient_into(
     let (bit_loss, bit_grads) = bit_term(s, view, px, &paths, side);
     out.grad.clear();
     out.ngrad.clear();
+    out.ior = 0.0;
     for (k, (f, e)) in paths.iter().enumerate() {
         let (mut gp, mut gd) = exit_adjoint(s, view, e, &f.d, &gr);
         if let Some(Some((bp, bd))) = bit_grads.get(k) {
@@ -299,6 +304,7 @@ pub fn footprint_gradient_into(
         }
     }
     let finite = (loss + bit_loss).is_finite()
+        && out.ior.is_finite()
         && out
             .grad
             .iter()
@@ -427,6 +433,7 @@ fn refract_at(
     } else {
         (s.ior / s.ior_air, -1.0)
     };
+    let deta_dior = -sign * eta / s.ior;
     let (mut bary, mut interp_norm, mut vnormals) = ((0.0, 0.0), 0.0, [V3::zeros(); 3]);
     let outward = match mesh.vertex_normals {
         None => hit.n / hit.n.norm(),
@@ -462,6 +469,7 @@ fn refract_at(
         n,
         out_norm: sn.out.norm(),
         snell: sn,
+        deta_dior,
     })
 }
 
@@ -521,6 +529,7 @@ fn interface_adjoint(
     let gout = normalize_adjoint(&(it.snell.out / it.out_norm), it.out_norm, gd);
     let (mut gdin, mut gn) = (V3::zeros(), V3::zeros());
     snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
+    out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, &gout) * it.deta_dior;
     let g_outward = if it.entering { gn } else { -gn };
     let mut gtri = [V3::zeros(); 3];
     let mut gnormal = V3::zeros();

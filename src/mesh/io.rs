@@ -92,9 +92,15 @@ fn extension(path: &Path) -> String {
 
 /// Reads a PLY or OBJ mesh (chosen by the file extension).
 pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshIoError> {
-    let (positions, polygons) = match extension(path).as_str() {
+    read_mesh_with_quality(path).map(|(mesh, _)| mesh)
+}
+
+/// Reads a mesh and its per-vertex `quality` property, when it is a PLY file that has one (as
+/// `reconstruct`'s result carries its confidence).
+pub fn read_mesh_with_quality(path: &Path) -> Result<(TriMesh, Option<Vec<f64>>), MeshIoError> {
+    let ((positions, polygons), quality) = match extension(path).as_str() {
         "ply" => read_ply(path)?,
-        "obj" => read_obj(path)?,
+        "obj" => (read_obj(path)?, None),
         ext => {
             return Err(MeshIoError::UnknownFormat {
                 path: path.into(),
@@ -102,12 +108,39 @@ pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshIoError> {
             })
         }
     };
-    assemble(path, positions, polygons)
+    Ok((assemble(path, positions, polygons)?, quality))
 }
 
 /// Writes `mesh` to `path` atomically in the format its extension implies.
 pub fn write_mesh(path: &Path, mesh: &TriMesh) -> Result<(), MeshIoError> {
     write_mesh_as(path, mesh, MeshFormat::from_path(path)?)
+}
+
+/// Writes `mesh` to `path` (a .ply file) atomically, binary, with a float vertex property
+/// `quality` (one value per vertex; MeshLab colours by it).
+pub fn write_mesh_with_quality(
+    path: &Path,
+    mesh: &TriMesh,
+    quality: &[f64],
+) -> Result<(), MeshIoError> {
+    assert_eq!(
+        quality.len(),
+        mesh.positions.len(),
+        "one quality per vertex"
+    );
+    if MeshFormat::from_path(path)? == MeshFormat::Obj {
+        return Err(MeshIoError::UnknownFormat {
+            path: path.into(),
+            ext: "obj (a per-vertex quality needs .ply)".into(),
+        });
+    }
+    write_atomic(path, |w| {
+        write_ply_quality(w, mesh, Encoding::BinaryLittleEndian, Some(quality))
+    })
+    .map_err(|cause| MeshIoError::Write {
+        path: path.into(),
+        cause,
+    })
 }
 
 /// Writes `mesh` to `path` atomically in `format`.
@@ -184,10 +217,10 @@ fn assemble(
 
 // ---- PLY ----
 
-/// One PLY vertex (x, y, z of any numeric type) or face (a `vertex_indices`/`vertex_index` list
-/// of any integer type); everything else is ignored.
+/// One PLY vertex (x, y, z of any numeric type, and `quality` when present) or face (a
+/// `vertex_indices`/`vertex_index` list of any integer type); everything else is ignored.
 #[derive(Default)]
-struct PlyVertex([f64; 3], u8);
+struct PlyVertex([f64; 3], u8, Option<f64>);
 
 #[derive(Default)]
 struct PlyFace(Vec<i64>);
@@ -230,6 +263,10 @@ impl PropertyAccess for PlyVertex {
             "x" => 0,
             "y" => 1,
             "z" => 2,
+            "quality" => {
+                self.2 = scalar_f64(&property);
+                return PropertyAccessResult::Set;
+            }
             _ => return PropertyAccessResult::Ignored,
         };
         match scalar_f64(&property) {
@@ -264,7 +301,7 @@ impl PropertyAccess for PlyFace {
 /// Bytes a PLY element (vertex, face) takes once read, as the budget counts them.
 const PLY_BYTES_PER_ELEMENT: u128 = 96;
 
-fn read_ply(path: &Path) -> Result<RawMesh, MeshIoError> {
+fn read_ply(path: &Path) -> Result<(RawMesh, Option<Vec<f64>>), MeshIoError> {
     let file = File::open(path).map_err(|cause| MeshIoError::Open {
         path: path.into(),
         cause,
@@ -340,27 +377,38 @@ fn read_ply(path: &Path) -> Result<RawMesh, MeshIoError> {
             "vertex {i} lacks one of the properties x, y, z"
         )));
     }
+    let quality: Option<Vec<f64>> = verts.iter().map(|v| v.2).collect();
     Ok((
-        verts.into_iter().map(|v| v.0).collect(),
-        faces.into_iter().map(|f| f.0).collect(),
+        (
+            verts.into_iter().map(|v| v.0).collect(),
+            faces.into_iter().map(|f| f.0).collect(),
+        ),
+        quality,
     ))
 }
 
-/// A PLY element glasscan writes: a vertex (x, y, z as doubles) or a triangle.
+/// A PLY element glasscan writes: a vertex (x, y, z as doubles, a quality as float) or a
+/// triangle.
 enum PlyOut {
-    Vertex([f64; 3]),
+    Vertex([f64; 3], f32),
     Face([u32; 3]),
 }
 
 impl PropertyAccess for PlyOut {
     fn new() -> Self {
-        PlyOut::Vertex([0.0; 3])
+        PlyOut::Vertex([0.0; 3], 0.0)
     }
     fn get_double(&self, key: &str) -> Option<f64> {
         match (self, key) {
-            (PlyOut::Vertex(p), "x") => Some(p[0]),
-            (PlyOut::Vertex(p), "y") => Some(p[1]),
-            (PlyOut::Vertex(p), "z") => Some(p[2]),
+            (PlyOut::Vertex(p, _), "x") => Some(p[0]),
+            (PlyOut::Vertex(p, _), "y") => Some(p[1]),
+            (PlyOut::Vertex(p, _), "z") => Some(p[2]),
+            _ => None,
+        }
+    }
+    fn get_float(&self, key: &str) -> Option<f32> {
+        match (self, key) {
+            (PlyOut::Vertex(_, q), "quality") => Some(*q),
             _ => None,
         }
     }
@@ -373,6 +421,16 @@ impl PropertyAccess for PlyOut {
 }
 
 fn write_ply(w: &mut dyn Write, mesh: &TriMesh, encoding: Encoding) -> io::Result<()> {
+    write_ply_quality(w, mesh, encoding, None)
+}
+
+/// [`write_ply`] with a float vertex property `quality` when given.
+fn write_ply_quality(
+    w: &mut dyn Write,
+    mesh: &TriMesh,
+    encoding: Encoding,
+    quality: Option<&[f64]>,
+) -> io::Result<()> {
     let mut ply = Ply::<PlyOut>::new();
     ply.header.encoding = encoding;
     ply.header
@@ -383,6 +441,12 @@ fn write_ply(w: &mut dyn Write, mesh: &TriMesh, encoding: Encoding) -> io::Resul
         vertex.properties.add(PropertyDef::new(
             k.into(),
             PropertyType::Scalar(ScalarType::Double),
+        ));
+    }
+    if quality.is_some() {
+        vertex.properties.add(PropertyDef::new(
+            "quality".into(),
+            PropertyType::Scalar(ScalarType::Float),
         ));
     }
     vertex.count = mesh.positions.len();
@@ -398,7 +462,8 @@ fn write_ply(w: &mut dyn Write, mesh: &TriMesh, encoding: Encoding) -> io::Resul
         "vertex".into(),
         mesh.positions
             .iter()
-            .map(|p| PlyOut::Vertex([p.x, p.y, p.z]))
+            .enumerate()
+            .map(|(i, p)| PlyOut::Vertex([p.x, p.y, p.z], quality.map_or(0.0, |q| q[i] as f32)))
             .collect(),
     );
     ply.payload.insert(

@@ -101,6 +101,18 @@ impl TriMesh {
         self.bbox().map_or(0.0, |(lo, hi)| (hi - lo).norm())
     }
 
+    /// Per vertex, a third of its faces' area, mm² (they sum to the mesh's area).
+    pub fn vertex_areas(&self) -> Vec<f64> {
+        let mut area = vec![0.0; self.positions.len()];
+        for (f, face) in self.faces.iter().enumerate() {
+            let third = self.face_area(f) / 3.0;
+            for &v in face {
+                area[v as usize] += third;
+            }
+        }
+        area
+    }
+
     /// Total surface area, mm².
     pub fn area(&self) -> f64 {
         (0..self.faces.len()).map(|f| self.face_area(f)).sum()

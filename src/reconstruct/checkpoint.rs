@@ -52,6 +52,10 @@ pub struct StageReport {
     /// Where the stage's time went.
     #[serde(default)]
     pub profile: CostProfile,
+    /// The refractive index the stage was run at (`None` in checkpoints that predate it: the
+    /// scan's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ior: Option<f64>,
 }
 
 /// Where a stage's wall time went, seconds, and how fast it traced.
@@ -123,6 +127,25 @@ pub struct Checkpoint {
     /// What the run's inputs were read from ([`fingerprint`]).
     #[serde(default)]
     pub inputs: super::fingerprint::Fingerprint,
+    /// The refractive index the run was given (known, or a range to estimate it in; `None` in
+    /// checkpoints that predate it: the scan's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ior: Option<crate::scan::Ior>,
+    /// An index pass's current estimate of the index, which its next stage runs at
+    /// ([`super::index`]); `None`: the given index (or the range's middle, before the first).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ior_estimate: Option<f64>,
+    /// An index pass's stages so far: the index each ran at and the one the held-out views fit
+    /// best with its mesh.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ior_fits: Vec<[f64; 2]>,
+}
+
+impl Checkpoint {
+    /// The refractive index the next stage runs at.
+    pub fn index(&self, inputs: &super::Inputs) -> f64 {
+        self.ior_estimate.unwrap_or_else(|| inputs.ior.nominal())
+    }
 }
 
 /// Whether the warm-up made the mesh fit the held-out views better: DRT's steps carve what the
@@ -188,6 +211,9 @@ impl Checkpoint {
             warm_up: None,
             membrane: None,
             inputs: Default::default(),
+            ior: None,
+            ior_estimate: None,
+            ior_fits: Vec::new(),
         }
     }
 }

@@ -18,7 +18,8 @@ pub const STORED_DENSITY: f64 = 4.0;
 
 /// What the optimisation reads from the scan, loaded once.
 pub struct Inputs {
-    pub ior: f64,
+    /// The object's refractive index, known or to estimate.
+    pub ior: crate::scan::Ior,
     pub targets: Vec<ViewTargets>,
     /// Per view of `targets`, the share of its decoded pixels kept (their weights carry its
     /// inverse).

@@ -31,7 +31,13 @@ pub(super) fn judge_warm_up(
     };
     let start = read_mesh(&out.join(&checkpoint.start_mesh))
         .context("the start mesh of this run is unreadable; start over with --force")?;
-    let Some(start_fit) = validate_mesh(inputs, split, &start, &checkpoint.settings)? else {
+    let Some(start_fit) = validate_mesh(
+        (inputs, checkpoint.index(inputs)),
+        split,
+        &start,
+        &checkpoint.settings,
+    )?
+    else {
         return Ok(warmed);
     };
     let discarded = warm_up_refraction > start_fit.refraction;

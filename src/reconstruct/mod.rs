@@ -5,9 +5,11 @@
 //! ([`output`]), from which `--resume` continues with the same result as an uninterrupted run.
 
 pub mod checkpoint;
+pub mod confidence;
 pub mod config;
 pub mod coverage;
 pub mod fingerprint;
+pub mod index;
 pub mod inputs;
 mod judges;
 pub mod optim;
@@ -52,6 +54,7 @@ pub enum Start<'a> {
 }
 
 /// A fresh run's start mesh (world frame, mm) and the name of the file it is written to.
+#[derive(Clone)]
 pub struct StartMesh {
     pub mesh: TriMesh,
     pub name: &'static str,
@@ -138,6 +141,9 @@ fn run(
         if checkpoint.stages_done == settings.warmup_stages {
             mesh = judge_warm_up(inputs, &split, &mut checkpoint, mesh, out, progress)?;
         }
+        if inputs.ior.is_auto() {
+            estimate_index(inputs, &split, &mut checkpoint, &mesh, progress)?;
+        }
         commit(out, &checkpoint)?;
     }
     Ok(Finished {
@@ -145,6 +151,35 @@ fn run(
         mesh,
         complete: true,
     })
+}
+
+/// An index pass's estimate after a stage ([`index`]): the index the held-out views fit best
+/// with `mesh`, which the next stage runs at.
+fn estimate_index(
+    inputs: &Inputs,
+    split: &Split,
+    checkpoint: &mut Checkpoint,
+    mesh: &TriMesh,
+    progress: &dyn Progress,
+) -> Result<()> {
+    if !split.validates() {
+        bail!("the refractive index cannot be estimated: no views are held out (validation_share is 0); hold some out, or give the index");
+    }
+    let from = (checkpoint.index(inputs), inputs.ior.range());
+    let Some(best) = index::held_out_best(inputs, split, mesh, &checkpoint.settings, from)? else {
+        progress.note(&format!(
+            "refractive index: the held-out views' fit has no clear minimum with this stage's mesh; the next stage keeps {:.4}",
+            checkpoint.index(inputs)
+        ));
+        return Ok(());
+    };
+    checkpoint.ior_fits.push([from.0, best.ior]);
+    progress.note(&format!(
+        "refractive index: the held-out views fit {:.4} ± {:.4} best with the mesh made at {:.4} ({} evaluations); the next stage runs at it",
+        best.ior, best.spread, from.0, best.evaluations
+    ));
+    checkpoint.ior_estimate = Some(best.ior);
+    Ok(())
 }
 
 /// The start mesh of a fresh run, written to `out` and committed as a checkpoint with no stage
@@ -169,6 +204,9 @@ fn begin_run(
         warm_up: None,
         membrane: None,
         inputs: inputs.fingerprint.clone(),
+        ior: Some(inputs.ior),
+        ior_estimate: None,
+        ior_fits: Vec::new(),
     };
     commit(out, &checkpoint)?;
     Ok((checkpoint, mesh))
@@ -224,6 +262,13 @@ fn continue_run(
             changed.join(", ")
         );
     }
+    if checkpoint.ior.is_some_and(|i| i != inputs.ior) {
+        bail!(
+            "--resume: the run in {} was given another refractive index ({}); give the same (scan.toml or --ior), or start over with --force",
+            out.display(),
+            checkpoint.ior.map_or(String::new(), |i| format!("{i:?}"))
+        );
+    }
     if !settings.continues(&checkpoint.settings) {
         bail!(
             "--resume: the settings differ from the run in {} (its settings are in checkpoint.json)",
@@ -257,7 +302,7 @@ mod tests {
         write_mesh(&dir.path().join("start.ply"), &start).unwrap();
         let mut checkpoint = Checkpoint::example(None);
         let inputs = Inputs {
-            ior: 1.5,
+            ior: crate::scan::Ior::Known(1.5),
             targets: Vec::new(),
             kept_shares: Vec::new(),
             silhouettes: Vec::new(),
@@ -309,7 +354,7 @@ mod tests {
         // (0.099 mm); a camera 100 mm away with 500 px focal length: 0.2 mm pixels, 2.02 edges.
         let mesh = crate::mesh::shapes::icosphere(10.0, 2);
         let inputs = |bits: PixelBits| Inputs {
-            ior: 1.5,
+            ior: crate::scan::Ior::Known(1.5),
             targets: vec![ViewTargets {
                 pixels: vec![PixelTarget {
                     dir: -nalgebra::Vector3::z(),

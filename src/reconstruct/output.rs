@@ -25,6 +25,10 @@ pub fn stage_path(out: &Path, s: usize) -> PathBuf {
     out.join(format!("stage_{s:02}.ply"))
 }
 
+/// The folder, inside a run's output folder, of the pass that estimates an unknown refractive
+/// index (`ior = "auto"`): a run of its own, with its own checkpoint.
+pub const INDEX_PASS: &str = "index_pass";
+
 /// What an output folder held when a run was asked to write into it.
 #[derive(Debug)]
 pub enum Existing {
@@ -51,8 +55,27 @@ fn is_glasscan_file(name: &str) -> bool {
             "report.json",
             "loss.png",
             "loss.svg",
+            "confidence.png",
         ]
         .contains(&name)
+}
+
+/// True for an entry of `out` that glasscan's reconstruction writes: one of its files, or the
+/// index pass's folder holding nothing else.
+fn is_glasscan_entry(out: &Path, name: &str) -> Result<bool> {
+    let path = out.join(name);
+    if name == INDEX_PASS && path.is_dir() {
+        return Ok(folder_entries(&path)?.iter().all(|n| is_glasscan_file(n)));
+    }
+    Ok(is_glasscan_file(name))
+}
+
+/// The committed run in `out` (a folder glasscan's reconstruction wrote, or none yet).
+pub fn committed_run(out: &Path) -> Result<Existing> {
+    Ok(match read_checkpoint(out)? {
+        Some(checkpoint) => Existing::Run(Box::new(checkpoint)),
+        None => Existing::Nothing,
+    })
 }
 
 /// The names in `out` (sorted), or none when it does not exist; an error when it is a file.
@@ -109,7 +132,8 @@ pub fn commit(out: &Path, checkpoint: &Checkpoint) -> Result<()> {
 ///   `force`, refused otherwise.
 /// - A folder holding only glasscan's files but no committed checkpoint (a run killed before its
 ///   first commit): started anew with `resume` or `force` (the files are leftovers), refused
-///   otherwise.
+///   otherwise; but with `resume`, a committed index pass ([`INDEX_PASS`]) is kept, to be
+///   continued.
 /// - A folder holding other files: always refused (`force` never deletes what glasscan did not
 ///   write).
 ///
@@ -129,7 +153,14 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
     if names.is_empty() {
         return Ok(Existing::Nothing);
     }
-    if let Some(other) = names.iter().find(|n| !is_glasscan_file(n)) {
+    let mut foreign = None;
+    for n in &names {
+        if !is_glasscan_entry(out, n)? {
+            foreign = Some(n);
+            break;
+        }
+    }
+    if let Some(other) = foreign {
         bail!(
             "{} holds files that are not a glasscan reconstruction (e.g. {other}): choose a new or \
              empty output folder",
@@ -140,6 +171,8 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
         Err(_) if force => None,
         other => other?,
     };
+    let index_pass = out.join(INDEX_PASS);
+    let index_pass_committed = checkpoint_path(&index_pass).is_file();
     match committed {
         Some(checkpoint) if resume && !force => Ok(Existing::Run(Box::new(checkpoint))),
         Some(checkpoint) if !force => bail!(
@@ -149,11 +182,22 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
             checkpoint.stages_done,
             checkpoint.settings.total_stages()
         ),
+        None if index_pass_committed && !(resume || force) => bail!(
+            "{} holds a run that is estimating the refractive index ({}): continue it with \
+             --resume, start it over with --force, or choose another output folder",
+            out.display(),
+            index_pass.display()
+        ),
         None if !(resume || force) => bail!(
             "{} holds the files of a run that stopped before its first checkpoint: start it over \
              with --resume or --force, or choose another output folder",
             out.display()
         ),
+        None if index_pass_committed && resume && !force => {
+            let main: Vec<String> = names.into_iter().filter(|n| n != INDEX_PASS).collect();
+            clear(out, &main)?;
+            Ok(Existing::Nothing)
+        }
         _ => {
             clear(out, &names)?;
             Ok(Existing::Nothing)
@@ -161,11 +205,17 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
     }
 }
 
-/// Removes glasscan's files `names` from `out`.
+/// Removes glasscan's entries `names` from `out` (the index pass's folder with its files).
 fn clear(out: &Path, names: &[String]) -> Result<()> {
     for n in names {
         let p = out.join(n);
-        std::fs::remove_file(&p).with_context(|| format!("cannot remove {}", p.display()))?;
+        if n == INDEX_PASS && p.is_dir() {
+            clear(&p, &folder_entries(&p)?)?;
+            std::fs::remove_dir(&p)
+        } else {
+            std::fs::remove_file(&p)
+        }
+        .with_context(|| format!("cannot remove {}", p.display()))?;
     }
     Ok(())
 }

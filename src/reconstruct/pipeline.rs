@@ -1,22 +1,31 @@
 //! The pipeline's entry point, which the CLI, the demo and the benchmarks call: from a decoded
-//! scan to `result.ply`, with `report.json`, the loss plot, and the evaluation against the
-//! scan's ground truth where it has one.
+//! scan to `result.ply` (with its confidence as a vertex property), with `report.json`, the loss
+//! plot, `confidence.png`, and the evaluation against the scan's ground truth where it has one;
+//! with an unknown refractive index, after the pass that estimates it ([`super::index`]).
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{bail, Result};
 
+use super::confidence::{self, Confidence, ConfidenceSummary};
 use super::config::Settings;
+use super::index::{self, IndexReport};
+use super::output::{committed_run, INDEX_PASS};
 use super::plot::loss_plot;
-use super::validation::best_stage;
-use super::{load_inputs, run, stage_path, Checkpoint, Existing, Finished, Progress, Start};
+use super::validation::{best_stage, Split};
+use super::{
+    load_inputs, run, stage_path, Checkpoint, Existing, Finished, Inputs, Progress, Start,
+    StartMesh,
+};
+use crate::eval::confidence::{error_by_confidence, ErrorByConfidence};
+use crate::eval::error_map::{confidence_legend, write_support_map};
 use crate::eval::{evaluate, EvalOptions, EvalReport};
-use crate::mesh::io::{read_mesh, write_mesh};
+use crate::mesh::io::{read_mesh, write_mesh_with_quality};
 use crate::mesh::stats::quality;
 use crate::mesh::TriMesh;
-use crate::scan::Scan;
+use crate::scan::{Ior, Scan};
 use crate::util::atomic::write_json;
 
 /// One reconstruction to run.
@@ -43,6 +52,10 @@ pub struct Outcome {
     pub result: TriMesh,
     /// Against `SCAN/ground_truth.ply`, when the scan has one and the run is complete.
     pub evaluation: Option<EvalReport>,
+    /// The index the result was made at and the held-out fit about it (a complete run).
+    pub index: Option<IndexReport>,
+    /// What constrains the result's surface, by area (a complete run).
+    pub confidence: Option<ConfidenceSummary>,
     pub warnings: Vec<String>,
 }
 
@@ -70,28 +83,41 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
             (Some(start), diagonal_mm)
         }
     };
-    let (inputs, warnings) = load_inputs(scan, &views, &settings, silhouettes, diagonal_mm)?;
+    let (mut inputs, mut warnings) =
+        load_inputs(scan, &views, &settings, silhouettes, diagonal_mm)?;
     for w in &warnings {
         progress.note(&format!("warning: {w}"));
     }
+    let given = inputs.ior;
+    if given.is_auto() {
+        let main_committed = matches!(existing, Existing::Run(_));
+        let pass = (start.clone(), main_committed);
+        match index_pass(&inputs, pass, &settings, out, progress, stop)? {
+            Ok(estimate) => inputs.ior = Ior::Known(estimate),
+            Err(stopped) => return Ok(stopped_outcome(stopped, warnings)),
+        }
+    }
     let finished = run(&inputs, start, &settings, out, existing, progress, stop)?;
     if !finished.complete {
-        // A stopped run has no result yet: its last stage stands in.
-        return Ok(Outcome {
-            result_stage: finished.checkpoint.stages_done.saturating_sub(1),
-            result: finished.mesh,
-            checkpoint: finished.checkpoint,
-            complete: false,
-            evaluation: None,
-            warnings,
-        });
+        return Ok(stopped_outcome(finished, warnings));
     }
     let (result_stage, result) = choose_result(out, &finished, progress)?;
-    let evaluation = evaluate_against_truth(scan, &result)?;
+    let index = index_report(&inputs, given, (&finished, result_stage, &result))?;
+    if let Some(w) = index.warning() {
+        progress.note(&format!("warning: {w}"));
+        warnings.push(w);
+    }
+    let settings = &finished.checkpoint.settings;
+    let confidence = confidence::measure(&inputs, &result, settings, index.used)?;
+    let density = confidence.rays_per_mm2();
+    let evaluation = evaluate_against_truth(scan, &result, &density)?;
     let report = Report {
         views: views.len(),
         result_stage,
-        evaluation: evaluation.as_ref(),
+        index: &index,
+        confidence: &confidence,
+        evaluation: evaluation.as_ref().map(|e| &e.0),
+        error_by_confidence: evaluation.as_ref().map(|e| e.1),
         warnings: &warnings,
         t0,
     };
@@ -101,8 +127,81 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         complete: true,
         result_stage,
         result,
-        evaluation,
+        evaluation: evaluation.map(|e| e.0),
+        index: Some(index),
+        confidence: Some(confidence.summary()),
         warnings,
+    })
+}
+
+/// A stopped run's outcome: it has no result yet, its last stage stands in.
+fn stopped_outcome(finished: Finished, warnings: Vec<String>) -> Outcome {
+    Outcome {
+        result_stage: finished.checkpoint.stages_done.saturating_sub(1),
+        result: finished.mesh,
+        checkpoint: finished.checkpoint,
+        complete: false,
+        evaluation: None,
+        index: None,
+        confidence: None,
+        warnings,
+    }
+}
+
+/// The index pass of a run given `ior = "auto"` ([`index`]), in `out/index_pass` (continued
+/// when committed there; `start` is the run's start mesh, `None` when the main run is committed,
+/// which it is only once the pass is complete): its estimate, or the stopped pass.
+fn index_pass(
+    inputs: &Inputs,
+    (start, main_committed): (Option<StartMesh>, bool),
+    settings: &Settings,
+    out: &Path,
+    progress: &dyn Progress,
+    stop: &AtomicBool,
+) -> Result<Result<f64, Finished>> {
+    let dir = out.join(INDEX_PASS);
+    let existing = committed_run(&dir)?;
+    if main_committed && matches!(existing, Existing::Nothing) {
+        bail!(
+            "--resume: {} (the pass that estimated the refractive index) is missing or has no checkpoint; start the run over with --force",
+            dir.display()
+        );
+    }
+    let pass = index::pass_settings(settings);
+    let (lo, hi) = inputs.ior.range();
+    progress.note(&format!(
+        "the refractive index is unknown ({lo}–{hi}): a first pass of {} stages estimates it with the shape, in {}",
+        pass.total_stages(),
+        dir.display()
+    ));
+    let finished = run(inputs, start, &pass, &dir, existing, progress, stop)?;
+    if !finished.complete {
+        return Ok(Err(finished));
+    }
+    let estimate = finished.checkpoint.index(inputs);
+    progress.note(&format!(
+        "refractive index estimated at {estimate:.4}: the run starts again from the start mesh at it"
+    ));
+    Ok(Ok(estimate))
+}
+
+/// The index the result was made at (`given`, or the index pass's estimate) and the held-out
+/// fit of the result (`finished`'s stage `result_stage`, mesh `result`) about it.
+fn index_report(
+    inputs: &Inputs,
+    given: Ior,
+    (finished, result_stage, result): (&Finished, usize, &TriMesh),
+) -> Result<IndexReport> {
+    let settings = &finished.checkpoint.settings;
+    let used = (finished.checkpoint.stages.get(result_stage))
+        .and_then(|r| r.ior)
+        .unwrap_or_else(|| inputs.ior.nominal());
+    let split = Split::new(inputs, settings.validation_share);
+    let from = (used, index::search_range(given));
+    Ok(IndexReport {
+        given,
+        used,
+        held_out_best: index::held_out_best(inputs, &split, result, settings, from)?,
     })
 }
 
@@ -141,20 +240,33 @@ fn choose_result(
     Ok((best, read_mesh(&stage_path(out, best))?))
 }
 
-/// The result against the scan's `ground_truth.ply`, if it has one.
-fn evaluate_against_truth(scan: &Scan, result: &TriMesh) -> Result<Option<EvalReport>> {
+/// The result against the scan's `ground_truth.ply`, if it has one, and its error by quarters
+/// of the area ordered by its confidence (`density`, per vertex).
+fn evaluate_against_truth(
+    scan: &Scan,
+    result: &TriMesh,
+    density: &[f64],
+) -> Result<Option<(EvalReport, ErrorByConfidence)>> {
     let truth = scan.dir.join("ground_truth.ply");
     if !truth.is_file() {
         return Ok(None);
     }
     let reference = read_mesh(&truth)?;
-    Ok(Some(evaluate(result, &reference, &EvalOptions::default())?))
+    let device = crate::trace::Device::new()?;
+    let scene = crate::trace::Scene::new(&device, &reference, crate::trace::BuildMode::Static)?;
+    Ok(Some((
+        evaluate(result, &reference, &EvalOptions::default())?,
+        error_by_confidence(result, density, &scene)?,
+    )))
 }
 
 /// What `report.json` says beside the checkpoint's figures.
 struct Report<'a> {
     views: usize,
     result_stage: usize,
+    index: &'a IndexReport,
+    confidence: &'a Confidence,
+    error_by_confidence: Option<ErrorByConfidence>,
     evaluation: Option<&'a EvalReport>,
     warnings: &'a [String],
     t0: Instant,
@@ -163,8 +275,18 @@ struct Report<'a> {
 /// `result.ply`, `loss.png` and `report.json` of a complete run in `out`.
 fn write_results(out: &Path, finished: &Finished, result: &TriMesh, r: &Report) -> Result<()> {
     let checkpoint = &finished.checkpoint;
-    write_mesh(&out.join("result.ply"), result)?;
+    let density = r.confidence.rays_per_mm2();
+    write_mesh_with_quality(&out.join("result.ply"), result, &density)?;
     loss_plot(&out.join("loss.png"), checkpoint)?;
+    let summary = r.confidence.summary();
+    let device = crate::trace::Device::new()?;
+    let scene = crate::trace::Scene::new(&device, result, crate::trace::BuildMode::Static)?;
+    write_support_map(
+        &out.join("confidence.png"),
+        (result, &scene),
+        &density,
+        confidence_legend(&density),
+    )?;
     let report = serde_json::json!({
         "settings": checkpoint.settings,
         "views": r.views,
@@ -174,8 +296,11 @@ fn write_results(out: &Path, finished: &Finished, result: &TriMesh, r: &Report) 
         "warm_up": checkpoint.warm_up,
         "membrane": checkpoint.membrane,
         "result_stage": r.result_stage + 1,
+        "ior": r.index,
+        "confidence": summary,
         "result_mesh": quality(result),
         "evaluation_against_ground_truth": r.evaluation.map(|e| e.to_json()),
+        "error_by_confidence_against_ground_truth": r.error_by_confidence,
         "warnings": r.warnings,
     });
     write_json(&out.join("report.json"), &report)

@@ -89,8 +89,9 @@ pub(super) fn run_next_stage(
     let seconds_remesh = t0.elapsed().as_secs_f64();
     let stages = checkpoint.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
+    let ior = checkpoint.index(inputs);
     let (report, mean) = run_stage(
-        (inputs, split),
+        (inputs, split, ior),
         &mut mesh,
         &phase,
         (s, k),
@@ -100,8 +101,9 @@ pub(super) fn run_next_stage(
     )?;
     let t_validation = Instant::now();
     let (validation, averaged) =
-        settle_stage((inputs, split), &mut mesh, mean, &checkpoint.settings)?;
+        settle_stage((inputs, split, ior), &mut mesh, mean, &checkpoint.settings)?;
     let report = StageReport {
+        ior: Some(ior),
         seconds: t0.elapsed().as_secs_f64(),
         degenerate_faces: check_stage_mesh(&mesh, s)?,
         validation,
@@ -124,17 +126,17 @@ pub(super) fn run_next_stage(
 /// one at its minimum ends in the noise about it; the mean when no view is held out. Returns
 /// the chosen mesh's fit and whether it is the mean.
 pub(super) fn settle_stage(
-    (inputs, split): (&Inputs, &Split),
+    (inputs, split, ior): (&Inputs, &Split, f64),
     mesh: &mut TriMesh,
     mean: Option<Vec<Point3<f64>>>,
     settings: &Settings,
 ) -> Result<(Option<ValidationRecord>, bool)> {
-    let last_fit = validate_mesh(inputs, split, mesh, settings)?;
+    let last_fit = validate_mesh((inputs, ior), split, mesh, settings)?;
     let Some(mean) = mean else {
         return Ok((last_fit, false));
     };
     let last = std::mem::replace(&mut mesh.positions, mean);
-    let mean_fit = validate_mesh(inputs, split, mesh, settings)?;
+    let mean_fit = validate_mesh((inputs, ior), split, mesh, settings)?;
     match (last_fit, mean_fit) {
         (Some(l), Some(m)) if l.total < m.total => {
             mesh.positions = last;
@@ -144,10 +146,11 @@ pub(super) fn settle_stage(
     }
 }
 
-/// The iterations of stage `s` of the run, stage `k` of `settings`' schedule, on `mesh` (moved in
-/// place to the last iterate), and the mean of the last iterates when `settings` average them.
+/// The iterations of stage `s` of the run, stage `k` of `settings`' schedule, at refractive
+/// index `ior`, on `mesh` (moved in place to the last iterate), and the mean of the last iterates
+/// when `settings` average them.
 pub(super) fn run_stage(
-    (inputs, split): (&Inputs, &Split),
+    (inputs, split, ior): (&Inputs, &Split, f64),
     mesh: &mut TriMesh,
     settings: &Settings,
     (s, k): (usize, usize),
@@ -178,7 +181,7 @@ pub(super) fn run_stage(
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(iteration_seed(settings.seed, s, it));
         let t = Instant::now();
-        let refraction = refraction_term(inputs, split, &surface, mesh, settings, &mut rng)?;
+        let refraction = refraction_term((inputs, ior), split, &surface, mesh, settings, &mut rng)?;
         timed(&mut profile.refraction, t);
         let t = Instant::now();
         let silhouette =
@@ -234,6 +237,7 @@ pub(super) fn run_stage(
             refraction_rays_per_s: used as f64 / profile.refraction.max(1e-9),
             ..profile
         },
+        ior: Some(ior),
     };
     Ok((report, tail.mean()))
 }

@@ -31,17 +31,21 @@ pub(super) struct TermValue {
     pub(super) used: usize,
     pub(super) drops: Drops,
     pub(super) grad: Vec<V3>,
+    /// ∂(weighted sum)/∂ the object's refractive index.
+    pub(super) ior_grad: f64,
 }
 
 impl TermValue {
     pub(super) fn from(acc: Accumulator, mesh: &TriMesh) -> Self {
-        let (loss, weight, used, drops) = (acc.loss, acc.weight, acc.used, acc.drops);
+        let (loss, weight, used, drops, ior_grad) =
+            (acc.loss, acc.weight, acc.used, acc.drops, acc.ior);
         Self {
             loss,
             weight,
             used,
             drops,
             grad: acc.finish(mesh),
+            ior_grad,
         }
     }
 }
@@ -97,10 +101,10 @@ pub(super) fn iteration_seed(seed: u64, s: usize, it: usize) -> u64 {
     scatter_seed(seed) ^ ((s as u64) << 40) ^ it as u64
 }
 
-/// The refraction term over `refraction_views` random views of those `split` fits, each a
-/// sample of its pixels from a random offset ([`refraction_over`]).
+/// The refraction term at refractive index `ior` over `refraction_views` random views of those
+/// `split` fits, each a sample of its pixels from a random offset ([`refraction_over`]).
 pub(super) fn refraction_term(
-    inputs: &Inputs,
+    (inputs, ior): (&Inputs, f64),
     split: &Split,
     surface: &MeshSurface,
     mesh: &TriMesh,
@@ -113,7 +117,7 @@ pub(super) fn refraction_term(
         .into_iter()
         .map(|v| (fit[v], Sample::Offset(rng.random::<f64>())))
         .collect();
-    refraction_over(inputs, surface, mesh, settings, &views)
+    refraction_over((inputs, ior), surface, mesh, settings, &views)
 }
 
 /// Which of a view's kept pixels a term traces.
@@ -127,16 +131,30 @@ pub(super) enum Sample {
     AllKept,
 }
 
-/// The refraction term over `views` (target index, which pixels).
+/// The refraction term at refractive index `ior` over `views` (target index, which pixels).
 pub(super) fn refraction_over(
-    inputs: &Inputs,
+    inputs: (&Inputs, f64),
     surface: &MeshSurface,
     mesh: &TriMesh,
     settings: &Settings,
     views: &[(usize, Sample)],
 ) -> Result<TermValue> {
+    let mut acc = Accumulator::new(mesh.positions.len(), surface.vertex_normals().is_some());
+    add_refraction(inputs, surface, mesh, settings, views, &mut acc)?;
+    Ok(TermValue::from(acc, mesh))
+}
+
+/// Adds the refraction term at refractive index `ior` over `views` to `acc`.
+pub(super) fn add_refraction(
+    (inputs, ior): (&Inputs, f64),
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    settings: &Settings,
+    views: &[(usize, Sample)],
+    acc: &mut Accumulator,
+) -> Result<()> {
     let rs = RefractionSettings {
-        ior: inputs.ior,
+        ior,
         ior_air: IOR_AIR,
         max_refractions: settings.max_refractions,
         normals: settings.normals,
@@ -152,26 +170,18 @@ pub(super) fn refraction_over(
     });
     let spacing_mm = settings.ray_spacing * diagonal;
     let vn = surface.vertex_normals();
-    let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
     for &(v, sample) in views {
         let view = &inputs.targets[v];
         match sample {
             Sample::Offset(offset) => {
                 // The share of the kept pixels (themselves a share of the decoded ones).
                 let share = view.share_for_spacing(&centre, spacing_mm) / inputs.kept_shares[v];
-                add_view(
-                    surface,
-                    mesh,
-                    vn,
-                    &rs,
-                    &view.sampled(share, offset),
-                    &mut acc,
-                )?;
+                add_view(surface, mesh, vn, &rs, &view.sampled(share, offset), acc)?;
             }
-            Sample::AllKept => add_view(surface, mesh, vn, &rs, view, &mut acc)?,
+            Sample::AllKept => add_view(surface, mesh, vn, &rs, view, acc)?,
         }
     }
-    Ok(TermValue::from(acc, mesh))
+    Ok(())
 }
 
 /// The silhouette term over `silhouette_views` random views of those `split` fits (nothing at
@@ -207,12 +217,24 @@ pub(super) fn silhouette_over(
     settings: &Settings,
     views: &[usize],
 ) -> Result<TermValue> {
+    let mut acc = Accumulator::new(mesh.positions.len(), false);
+    add_silhouettes(inputs, (surface, mesh, edges), settings, views, &mut acc)?;
+    Ok(TermValue::from(acc, mesh))
+}
+
+/// Adds the silhouette term over the silhouettes `views` to `acc`.
+pub(super) fn add_silhouettes(
+    inputs: &Inputs,
+    (surface, mesh, edges): (&MeshSurface, &TriMesh, &[InteriorEdge]),
+    settings: &Settings,
+    views: &[usize],
+    acc: &mut Accumulator,
+) -> Result<()> {
     let s = SilhouetteSettings {
         form: settings.silhouette,
         unit_mm: settings.silhouette_scale * mesh.bbox_diagonal(),
         probe: settings.silhouette_probe,
     };
-    let mut acc = Accumulator::new(mesh.positions.len(), false);
     for &v in views {
         silhouette::add_view(
             mesh,
@@ -220,10 +242,10 @@ pub(super) fn silhouette_over(
             &inputs.silhouettes[v],
             surface.scene(),
             &s,
-            &mut acc,
+            acc,
         )?;
     }
-    Ok(TermValue::from(acc, mesh))
+    Ok(())
 }
 
 /// The smoothness term over every interior edge.

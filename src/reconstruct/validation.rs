@@ -147,9 +147,10 @@ impl Sums {
     }
 }
 
-/// The fit of `mesh` to the held-out views of `split`; `None` when none are held out.
+/// The fit of `mesh` at refractive index `ior` to the held-out views of `split`; `None` when
+/// none are held out.
 pub fn validate_mesh(
-    inputs: &Inputs,
+    (inputs, ior): (&Inputs, f64),
     split: &Split,
     mesh: &TriMesh,
     settings: &Settings,
@@ -163,7 +164,7 @@ pub fn validate_mesh(
     let mut views: BTreeMap<usize, ViewSums> = BTreeMap::new();
     for &t in &split.held_targets {
         let all = [(t, Sample::AllKept)];
-        let term = super::terms::refraction_over(inputs, &surface, mesh, settings, &all)?;
+        let term = super::terms::refraction_over((inputs, ior), &surface, mesh, settings, &all)?;
         let sums = &mut views.entry(inputs.targets[t].view).or_default().0;
         *sums = sums.add(Sums::of(&term));
     }
@@ -334,6 +335,7 @@ mod tests {
             unseen_share: 0.0,
             membrane_share: 0.0,
             profile: Default::default(),
+            ior: None,
         }
     }
 

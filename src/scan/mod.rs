@@ -9,7 +9,8 @@
 //!
 //! `scan.toml`:
 //! ```toml
-//! ior = 1.4723                  # refractive index of the object
+//! ior = 1.4723                  # refractive index of the object; "auto" (estimated within
+//!                               # 1.40–1.70) or { auto = [1.45, 1.60] } when unknown
 //! [calibration]
 //! camera = "camera.yml"         # paths relative to the scan folder
 //! screen = "screen.yml"
@@ -41,7 +42,7 @@ use crate::util::atomic::write_atomic;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ScanConfig {
-    pub ior: f64,
+    pub ior: Ior,
     pub calibration: CalibrationFiles,
     pub views: Views,
     pub patterns: Patterns,
@@ -117,6 +118,142 @@ pub enum ScanError {
     },
 }
 
+/// The object's refractive index as `scan.toml` (or `reconstruct --ior`) gives it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "IorToml", into = "IorToml")]
+pub enum Ior {
+    Known(f64),
+    /// Unknown: `reconstruct` estimates it with the shape, within [lo, hi].
+    Auto {
+        lo: f64,
+        hi: f64,
+    },
+}
+
+/// The range `ior = "auto"` searches: crown and borosilicate glasses, quartz, acrylic and most
+/// casting resins (1.45–1.60), with a margin.
+pub const AUTO_IOR_RANGE: (f64, f64) = (1.40, 1.70);
+
+/// How `ior` is written in TOML: a number, "auto", or { auto = [lo, hi] }.
+#[derive(Serialize, Deserialize)]
+#[serde(untagged)]
+enum IorToml {
+    Number(f64),
+    Word(String),
+    Range { auto: [f64; 2] },
+}
+
+impl TryFrom<IorToml> for Ior {
+    type Error = String;
+    fn try_from(t: IorToml) -> Result<Self, String> {
+        match t {
+            IorToml::Number(v) => Ior::known(v),
+            IorToml::Word(w) if w == "auto" => Ok(Ior::Auto {
+                lo: AUTO_IOR_RANGE.0,
+                hi: AUTO_IOR_RANGE.1,
+            }),
+            IorToml::Word(w) => Err(format!(
+                "ior = \"{w}\": give the refractive index (glass ≈ 1.5), \"auto\", or {{ auto = [lo, hi] }}"
+            )),
+            IorToml::Range { auto: [lo, hi] } => Ior::auto(lo, hi),
+        }
+    }
+}
+
+impl From<Ior> for IorToml {
+    fn from(i: Ior) -> Self {
+        match i {
+            Ior::Known(v) => IorToml::Number(v),
+            Ior::Auto { lo, hi } => IorToml::Range { auto: [lo, hi] },
+        }
+    }
+}
+
+impl Ior {
+    /// A known index, checked: above 1 (air), at most [`MAX_IOR`].
+    pub fn known(v: f64) -> Result<Self, String> {
+        if v > 1.0 && v <= MAX_IOR {
+            Ok(Ior::Known(v))
+        } else {
+            Err(format!(
+                "ior = {}: a solid transparent object's refractive index lies in (1, {MAX_IOR}] (glass ≈ 1.5)",
+                crate::util::short_number(v)
+            ))
+        }
+    }
+
+    /// An index to estimate within [lo, hi], checked.
+    pub fn auto(lo: f64, hi: f64) -> Result<Self, String> {
+        let (Ok(_), Ok(_)) = (Ior::known(lo), Ior::known(hi)) else {
+            return Err(format!(
+                "ior = {{ auto = [{}, {}] }}: both ends must lie in (1, {MAX_IOR}]",
+                crate::util::short_number(lo),
+                crate::util::short_number(hi)
+            ));
+        };
+        if lo < hi {
+            Ok(Ior::Auto { lo, hi })
+        } else {
+            Err(format!(
+                "ior = {{ auto = [{}, {}] }}: give the range's lower end first",
+                crate::util::short_number(lo),
+                crate::util::short_number(hi)
+            ))
+        }
+    }
+
+    /// The index a run starts from, and the one steps that need a single value (the decoder's
+    /// Fresnel loss) use: the known one, or the middle of the range.
+    pub fn nominal(&self) -> f64 {
+        match *self {
+            Ior::Known(v) => v,
+            Ior::Auto { lo, hi } => 0.5 * (lo + hi),
+        }
+    }
+
+    /// The range the index may take: [v, v] when known.
+    pub fn range(&self) -> (f64, f64) {
+        match *self {
+            Ior::Known(v) => (v, v),
+            Ior::Auto { lo, hi } => (lo, hi),
+        }
+    }
+
+    /// Whether the run estimates it.
+    pub fn is_auto(&self) -> bool {
+        matches!(self, Ior::Auto { .. })
+    }
+}
+
+impl std::str::FromStr for Ior {
+    type Err = String;
+    /// `1.52`, `auto`, or `auto:1.45:1.60` (the command line's form).
+    fn from_str(s: &str) -> Result<Self, String> {
+        let s = s.trim();
+        if s == "auto" {
+            return IorToml::Word(s.into()).try_into();
+        }
+        if let Some(range) = s.strip_prefix("auto:") {
+            let ends: Vec<f64> = range
+                .split(':')
+                .filter_map(|x| x.trim().parse().ok())
+                .collect();
+            return match ends[..] {
+                [lo, hi] => Ior::auto(lo, hi),
+                _ => Err(format!(
+                    "--ior {s}: give auto:LO:HI, such as auto:1.45:1.60"
+                )),
+            };
+        }
+        match s.parse::<f64>() {
+            Ok(v) => Ior::known(v),
+            Err(_) => Err(format!(
+                "--ior {s}: give the refractive index (glass ≈ 1.5), auto, or auto:LO:HI"
+            )),
+        }
+    }
+}
+
 /// The largest refractive index a scan may give (the densest glasses and crystals are below 2.5;
 /// diamond 2.42).
 pub const MAX_IOR: f64 = 4.0;
@@ -172,12 +309,6 @@ impl ScanConfig {
             path: path.clone(),
             msg,
         };
-        if !(config.ior > 1.0 && config.ior <= MAX_IOR) {
-            return Err(bad(format!(
-                "ior = {}: a solid transparent object's refractive index lies in (1, {MAX_IOR}] (glass ≈ 1.5)",
-                crate::util::short_number(config.ior)
-            )));
-        }
         let angles = &config.views.angles_deg;
         if angles.is_empty() || angles.len() > MAX_VIEWS {
             return Err(bad(format!(

@@ -26,7 +26,7 @@ use crate::mesh::TriMesh;
 use crate::patterns::GrayCode;
 use crate::rig::{Camera, Screen, Turntable};
 use crate::scan::decoded::ViewSummary;
-use crate::scan::{CalibrationFiles, PatternKind, Patterns, Scan, ScanConfig, Views};
+use crate::scan::{CalibrationFiles, Ior, PatternKind, Patterns, Scan, ScanConfig, Views};
 use crate::trace::path::{MeshSurface, PathSettings};
 use crate::trace::refract::IOR_AIR;
 use crate::util::fixed::{FixedPoint, NONE};
@@ -222,7 +222,7 @@ fn rig_scan(dir: &Path, o: &SimulateOptions, object: &Placed) -> Result<Scan> {
         pose: Isometry3::from_parts(centre, UnitQuaternion::identity()),
     };
     let config = ScanConfig {
-        ior: o.ior,
+        ior: Ior::Known(o.ior),
         calibration: CalibrationFiles {
             camera: "camera.yml".into(),
             screen: "screen.yml".into(),

@@ -532,7 +532,7 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
         .filter(|p| p.bits.any())
         .count();
     assert!(with_bits > 5000, "{with_bits} pixels with measured bits");
-    let settings = |bit_weight| refraction_settings(scan.config.ior, 0.0, 2, bit_weight);
+    let settings = |bit_weight| refraction_settings(scan.config.ior.nominal(), 0.0, 2, bit_weight);
     // The per-bit term per pixel: the term with it minus the term without.
     let bit_loss = |mesh: &TriMesh| {
         let surface = MeshSurface::new(mesh, NormalModel::Vertex).unwrap();
@@ -668,7 +668,7 @@ fn outward_slope(
     let surface = MeshSurface::new(&truth, normals).unwrap();
     let vertex_normals = truth.vertex_normals();
     let smooth = normals == NormalModel::Vertex;
-    let presets = refraction_settings(scan.config.ior, min_cos, 1, 0.0);
+    let presets = refraction_settings(scan.config.ior.nominal(), min_cos, 1, 0.0);
     let s = glasscan::loss::refraction::RefractionSettings {
         normals,
         grazing_cell_footprints: if rule {

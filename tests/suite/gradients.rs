@@ -218,6 +218,30 @@ fn fd_check(c: &Case, h: f64, label: &str) {
         worst <= 1e-5,
         "{label}: finite differences deviate by {worst:.2e} of the largest component ({gmax:.3e})"
     );
+    ior_fd_check(c, (10.0 * h).min(1e-5), label);
+}
+
+/// ∂L/∂(refractive index) against five-point central differences of the index (step `h`).
+fn ior_fd_check(c: &Case, h: f64, label: &str) {
+    let g = gradient(c, &c.mesh).unwrap().ior;
+    let at = |ior: f64| {
+        let k = Case {
+            s: RefractionSettings { ior, ..c.s },
+            view: c.view.clone(),
+            px: c.px,
+            rays: c.rays.clone(),
+            landing: c.landing,
+            mesh: c.mesh.clone(),
+        };
+        loss(&k, &c.mesh).unwrap()
+    };
+    let n = c.s.ior;
+    let fd = (8.0 * (at(n + h) - at(n - h)) - (at(n + 2.0 * h) - at(n - 2.0 * h))) / (12.0 * h);
+    assert!(g.abs() > 0.0 && g.is_finite(), "{label}: ∂L/∂ior = {g}");
+    assert!(
+        (fd - g).abs() <= 1e-5 * g.abs().max(1e-9),
+        "{label}: ∂L/∂ior {g:.6e} against finite differences {fd:.6e}"
+    );
 }
 
 fn bumpy(amplitude: f64, seed: u64) -> impl Fn(f64, f64) -> f64 {

@@ -1,0 +1,251 @@
+//! The object's refractive index: the pass that estimates an unknown one (`ior = "auto"`), and
+//! the index the held-out views fit best, which gives the estimate, its spread, and a warning
+//! when a given index fits worse than a nearby one (docs/decisions.md#glass-of-unknown-index).
+//!
+//! With the shape held fixed, the held-out views' refraction term is a smooth function of the
+//! index; its minimum is the root of its derivative ([`crate::loss::diff::snell_eta_adjoint`]),
+//! found by the secant method. A mesh made at a wrong index has bent to it, so its best fit lies
+//! between that index and the true one (the pig's physical 640×480 scan, true index 1.60: 1.569
+//! with a result made at 1.550, 1.596 with one made at 1.60). A run with an unknown index is two
+//! passes: the schedule without its last stage, each stage run at the best fit of the stage
+//! before (the first at the range's middle); then the whole schedule again from the start mesh
+//! at the pass's last best fit.
+
+use anyhow::Result;
+use serde::Serialize;
+
+use super::config::Settings;
+use super::terms::{refraction_over, Sample};
+use super::validation::Split;
+use super::Inputs;
+use crate::mesh::TriMesh;
+use crate::scan::{Ior, MAX_IOR};
+use crate::trace::path::MeshSurface;
+use crate::trace::BuildMode;
+
+/// The settings of the index pass: `settings`' schedule without its last stage (its edges
+/// those of the first stages).
+pub fn pass_settings(settings: &Settings) -> Settings {
+    if settings.stages < 2 {
+        return settings.clone();
+    }
+    let stages = settings.stages - 1;
+    Settings {
+        stages,
+        final_edge: settings.edge_mm(stages - 1, 1.0),
+        ..settings.clone()
+    }
+}
+
+/// The secant method's first step (index units).
+const FIRST_STEP: f64 = 0.01;
+/// The secant method stops when a step is shorter than this (index units).
+const TOLERANCE: f64 = 1e-4;
+/// The most evaluations of the held-out term the search makes.
+const MAX_EVALUATIONS: usize = 12;
+/// The longest step of the search (index units): where the term curves downward, or a secant
+/// step would leap, it steps this far downhill instead.
+const MAX_STEP: f64 = 0.03;
+/// How far from a given index (index units) the search for the best-fitting one looks.
+const GIVEN_REACH: f64 = 0.2;
+
+/// How much (share of its minimum) the held-out refraction term may rise over the index's
+/// spread: the spread is the half-width of the range where the term, as a parabola of the curvature
+/// the search measured, stays below (1 + this) × its minimum.
+pub const SPREAD_RISE: f64 = 0.01;
+
+/// How far (index units) the best-fitting index may lie from a given one before the run warns:
+/// the best fit is biased where the mesh is too coarse to take the shape (the test pebble at
+/// 4.5 mm edges, given its true index 1.4723, fits 1.496 best), by less than this; an index 3 %
+/// off is 0.045 off.
+pub const WARN_OFFSET: f64 = 0.03;
+
+/// The held-out views' refraction term (weighted mean) and its derivative with respect to the
+/// index, at one index.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct HeldOut {
+    ior: f64,
+    value: f64,
+    slope: f64,
+}
+
+/// The index the held-out views fit best, with the shape fixed.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct BestFit {
+    pub ior: f64,
+    /// See [`SPREAD_RISE`].
+    pub spread: f64,
+    /// The held-out refraction term there.
+    pub refraction: f64,
+    /// Evaluations of the held-out term the search made.
+    pub evaluations: usize,
+}
+
+/// What `report.json` says of the index.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct IndexReport {
+    /// As given (scan.toml or --ior).
+    pub given: Ior,
+    /// The index the result was made at: the given one, or the index pass's estimate.
+    pub used: f64,
+    /// The index the held-out views fit best with the result's shape (`None`: no views held
+    /// out, or the term has no minimum within reach).
+    pub held_out_best: Option<BestFit>,
+}
+
+impl IndexReport {
+    /// A warning when a given index fits the held-out views clearly worse than a nearby one.
+    pub fn warning(&self) -> Option<String> {
+        let (Ior::Known(given), Some(best)) = (self.given, self.held_out_best) else {
+            return None;
+        };
+        ((best.ior - given).abs() > WARN_OFFSET).then(|| {
+            format!(
+                "the held-out views fit a refractive index of {:.3} better than the given {given:.4}: check the index, or give ior = \"auto\"",
+                best.ior
+            )
+        })
+    }
+}
+
+/// The range the search for the best-fitting index keeps to: an unknown index's range, or
+/// [`GIVEN_REACH`] about a given one.
+pub fn search_range(ior: Ior) -> (f64, f64) {
+    match ior {
+        Ior::Auto { lo, hi } => (lo, hi),
+        Ior::Known(v) => (
+            (v - GIVEN_REACH).max(1.0 + 1e-3),
+            (v + GIVEN_REACH).min(MAX_IOR),
+        ),
+    }
+}
+
+/// The index within `range` where the held-out views' refraction term of `mesh` is lowest,
+/// by the secant method on its derivative from `from` (steps of at most [`MAX_STEP`], downhill
+/// where the term curves downward); `None` without held-out views, or when the search has not
+/// settled within [`MAX_EVALUATIONS`] or ends where the term curves downward.
+pub fn held_out_best(
+    inputs: &Inputs,
+    split: &Split,
+    mesh: &TriMesh,
+    settings: &Settings,
+    (from, range): (f64, (f64, f64)),
+) -> Result<Option<BestFit>> {
+    if !split.validates() {
+        return Ok(None);
+    }
+    let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
+    let at = |ior: f64| held_out(inputs, split, &surface, mesh, settings, ior);
+    let second = if from + FIRST_STEP <= range.1 {
+        from + FIRST_STEP
+    } else {
+        from - FIRST_STEP
+    };
+    let (mut a, mut b) = (at(from)?, at(second)?);
+    for evaluations in 3..=MAX_EVALUATIONS {
+        let curvature = (b.slope - a.slope) / (b.ior - a.ior);
+        let downhill = -MAX_STEP * b.slope.signum();
+        let step = if curvature > 0.0 && curvature.is_finite() {
+            (-b.slope / curvature).clamp(-MAX_STEP, MAX_STEP)
+        } else {
+            downhill
+        };
+        let next = (b.ior + step).clamp(range.0, range.1);
+        let c = at(next)?;
+        if (next - b.ior).abs() < TOLERANCE {
+            if !(curvature > 0.0 && curvature.is_finite()) {
+                return Ok(None);
+            }
+            return Ok(Some(BestFit {
+                ior: next,
+                spread: (2.0 * SPREAD_RISE * c.value.max(0.0) / curvature).sqrt(),
+                refraction: c.value,
+                evaluations,
+            }));
+        }
+        (a, b) = (b, c);
+    }
+    Ok(None)
+}
+
+/// The held-out views' refraction term at index `ior`, on every pixel they keep.
+fn held_out(
+    inputs: &Inputs,
+    split: &Split,
+    surface: &MeshSurface,
+    mesh: &TriMesh,
+    settings: &Settings,
+    ior: f64,
+) -> Result<HeldOut> {
+    let views: Vec<(usize, Sample)> = split
+        .held_targets
+        .iter()
+        .map(|&t| (t, Sample::AllKept))
+        .collect();
+    let term = refraction_over((inputs, ior), surface, mesh, settings, &views)?;
+    let w = if term.weight > 0.0 {
+        1.0 / term.weight
+    } else {
+        0.0
+    };
+    Ok(HeldOut {
+        ior,
+        value: term.loss * w,
+        slope: term.ior_grad * w,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn report_at(given: Ior, best: f64) -> IndexReport {
+        IndexReport {
+            given,
+            used: given.nominal(),
+            held_out_best: Some(BestFit {
+                ior: best,
+                spread: 0.003,
+                refraction: 1.0,
+                evaluations: 4,
+            }),
+        }
+    }
+
+    #[test]
+    fn a_given_index_far_from_the_best_fitting_one_warns_and_a_near_one_does_not() {
+        let far = report_at(Ior::Known(1.5), 1.535);
+        assert!(far.warning().unwrap().contains("1.535"), "{far:?}");
+        assert_eq!(report_at(Ior::Known(1.5), 1.525).warning(), None);
+        assert_eq!(
+            report_at(Ior::Auto { lo: 1.4, hi: 1.7 }, 1.6).warning(),
+            None
+        );
+        let none = IndexReport {
+            held_out_best: None,
+            ..far
+        };
+        assert_eq!(none.warning(), None);
+    }
+
+    #[test]
+    fn the_search_keeps_to_the_range_or_near_a_given_index() {
+        assert_eq!(search_range(Ior::Auto { lo: 1.45, hi: 1.6 }), (1.45, 1.6));
+        let (lo, hi) = search_range(Ior::Known(1.1));
+        assert!(
+            (lo - 1.001).abs() < 1e-12 && (hi - 1.3).abs() < 1e-12,
+            "{lo} {hi}"
+        );
+    }
+
+    #[test]
+    fn the_index_pass_runs_the_schedule_but_its_last_stage() {
+        let balanced = Settings::preset(super::super::config::Preset::Balanced);
+        let pass = pass_settings(&balanced);
+        assert_eq!(pass.stages, balanced.stages - 1);
+        for k in 0..pass.stages {
+            let (a, b) = (pass.edge_mm(k, 100.0), balanced.edge_mm(k, 100.0));
+            assert!((a - b).abs() < 1e-9, "stage {k}: {a} against {b}");
+        }
+    }
+}
