@@ -55,6 +55,18 @@ fn reconstruct_args(scan: &Path, config: &Path, out: &Path) -> Vec<String> {
     .to_vec()
 }
 
+/// The `report.json` of the run in `out`.
+fn read_report(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
+}
+
+/// A report's accuracy against the scan's ground truth, mm.
+fn result_accuracy(report: &serde_json::Value) -> f64 {
+    report["evaluation_against_ground_truth"]["accuracy_mm"]
+        .as_f64()
+        .unwrap()
+}
+
 /// A small scan, the config file and an uninterrupted run's result.ply, in `dir`.
 fn uninterrupted_run(dir: &Path) -> (PathBuf, PathBuf, Vec<u8>) {
     let scan = dir.join("scan");
@@ -128,8 +140,7 @@ fn a_killed_run_resumes_to_the_same_result() {
     for f in ["report.json", "loss.png", "hull.ply", "stage_03.ply"] {
         assert!(out.join(f).is_file(), "{f}");
     }
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let report = read_report(&out);
     assert_eq!(report["settings"]["seed"], 7);
     assert_eq!(report["stages"].as_array().unwrap().len(), 4);
     // One of the 12 views is held out; the result is the stage after the warm-up (stage 1) that
@@ -301,8 +312,7 @@ fn a_warm_up_that_fits_worse_than_its_start_is_discarded() {
         stderr.contains("the warm-up fits the held-out views worse"),
         "{stderr}"
     );
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let report = read_report(&out);
     let verdict = &report["warm_up"];
     assert_eq!(verdict["discarded"], true, "{verdict}");
     assert!(
@@ -346,12 +356,8 @@ fn extreme_refractive_indices_reconstruct_sensibly() {
             "ior {ior}: {}",
             String::from_utf8_lossy(&o.stderr)
         );
-        let report: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
-                .unwrap();
-        let accuracy = report["evaluation_against_ground_truth"]["accuracy_mm"]
-            .as_f64()
-            .unwrap();
+        let report = read_report(&out);
+        let accuracy = result_accuracy(&report);
         // The ellipsoid's diagonal is 2·|(30, 24, 20)| ≈ 86 mm.
         assert!(
             accuracy.is_finite() && accuracy < 0.86,
@@ -386,9 +392,7 @@ fn refraction_carries_the_shape_beyond_the_hull() {
         let out = dir.path().join(name);
         let o = glasscan(&reconstruct_args(&scan, &config, &out));
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let report: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
-                .unwrap();
+        let report = read_report(&out);
         assert_held_out_fit_per_view(&report);
         let accuracy = report["evaluation_against_ground_truth"]["accuracy_mm"].as_f64();
         (accuracy.unwrap(), out, report)
@@ -520,9 +524,7 @@ fn a_finer_camera_gives_the_same_result_from_as_many_rays() {
         let out = dir.path().join(&name);
         let o = glasscan(&reconstruct_args(&scan, &config, &out));
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let report: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
-                .unwrap();
+        let report = read_report(&out);
         let accuracy = report["evaluation_against_ground_truth"]["accuracy_mm"].as_f64();
         let last = &report["stages"][1];
         let rays = last["refraction_rays_used"].as_f64().unwrap();
@@ -607,12 +609,8 @@ fn an_unknown_refractive_index_is_estimated_and_a_wrong_one_warns() {
         args.extend(["--ior".into(), ior.into()]);
         let o = glasscan(&args);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let report: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
-                .unwrap();
-        let accuracy = report["evaluation_against_ground_truth"]["accuracy_mm"]
-            .as_f64()
-            .unwrap();
+        let report = read_report(&out);
+        let accuracy = result_accuracy(&report);
         (
             out,
             report,
