@@ -16,9 +16,7 @@ use super::config::Settings;
 use super::terms::{add_refraction, add_silhouettes, Sample};
 use super::Inputs;
 use crate::loss::Accumulator;
-use crate::mesh::TriMesh;
 use crate::trace::path::MeshSurface;
-use crate::trace::BuildMode;
 
 /// The fewest compared refraction rays at a vertex's faces for the vertex to count as
 /// constrained by refraction: a ray pins a point only along its path, a few from different
@@ -107,15 +105,16 @@ impl Confidence {
     }
 }
 
-/// The data that touches each vertex of `mesh` at refractive index `ior`: every view's every
-/// kept pixel and every silhouette, the run's `settings`.
+/// The data that touches each vertex of the mesh `surface` holds (built with the run's
+/// `settings`' normals) at refractive index `ior`: every view's every kept pixel and every
+/// silhouette, the run's `settings`.
 pub fn measure(
     inputs: &Inputs,
-    mesh: &TriMesh,
+    surface: &MeshSurface,
     settings: &Settings,
     ior: f64,
 ) -> Result<Confidence> {
-    let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
+    let mesh = surface.mesh();
     let n = mesh.positions.len();
     let mut refraction = Accumulator::counting(n, surface.vertex_normals().is_some());
     let views: Vec<(usize, Sample)> = (0..inputs.targets.len())
@@ -123,7 +122,7 @@ pub fn measure(
         .collect();
     add_refraction(
         (inputs, ior),
-        &surface,
+        surface,
         mesh,
         settings,
         &views,
@@ -132,7 +131,7 @@ pub fn measure(
     let mut silhouette = Accumulator::counting(n, false);
     let edges = mesh.interior_edges();
     let silhouettes: Vec<usize> = (0..inputs.silhouettes.len()).collect();
-    let geometry = (&surface, mesh, &edges[..]);
+    let geometry = (surface, mesh, &edges[..]);
     add_silhouettes(inputs, geometry, settings, &silhouettes, &mut silhouette)?;
     Ok(Confidence {
         // Each refraction adds an entry for each of its triangle's three vertices.

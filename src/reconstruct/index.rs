@@ -21,7 +21,6 @@ use super::Inputs;
 use crate::mesh::TriMesh;
 use crate::scan::{Ior, MAX_IOR};
 use crate::trace::path::MeshSurface;
-use crate::trace::BuildMode;
 
 /// The settings of the index pass: `settings`' schedule without its last stage (its edges
 /// those of the first stages).
@@ -120,22 +119,22 @@ pub fn search_range(ior: Ior) -> (f64, f64) {
     }
 }
 
-/// The index within `range` where the held-out views' refraction term of `mesh` is lowest,
+/// The index within `range` where the held-out views' refraction term of the mesh `surface`
+/// holds is lowest,
 /// by the secant method on its derivative from `from` (steps of at most [`MAX_STEP`], downhill
 /// where the term curves downward); `None` without held-out views, or when the search has not
 /// settled within [`MAX_EVALUATIONS`] or ends where the term curves downward.
 pub fn held_out_best(
     inputs: &Inputs,
     split: &Split,
-    mesh: &TriMesh,
+    surface: &MeshSurface,
     settings: &Settings,
     (from, range): (f64, (f64, f64)),
 ) -> Result<Option<BestFit>> {
     if !split.validates() {
         return Ok(None);
     }
-    let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
-    let at = |ior: f64| held_out(inputs, split, &surface, mesh, settings, ior);
+    let at = |ior: f64| held_out(inputs, split, surface, surface.mesh(), settings, ior);
     let second = if from + FIRST_STEP <= range.1 {
         from + FIRST_STEP
     } else {

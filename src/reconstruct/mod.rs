@@ -31,7 +31,9 @@ use crate::loss::refraction::ViewTargets;
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::TriMesh;
 use crate::scan::silhouette::Silhouette;
+use crate::trace::path::MeshSurface;
 use crate::trace::thickness::thickness_quantile;
+use crate::trace::BuildMode;
 pub use checkpoint::{
     Checkpoint, CostProfile, IterationRecord, MembraneVerdict, StageReport, WarmUpVerdict,
     MEMBRANE_MIN_SHARE, MEMBRANE_SILHOUETTE_RATIO,
@@ -166,7 +168,9 @@ fn estimate_index(
         bail!("the refractive index cannot be estimated: no views are held out (validation_share is 0); hold some out, or give the index");
     }
     let from = (checkpoint.index(inputs), inputs.ior.range());
-    let Some(best) = index::held_out_best(inputs, split, mesh, &checkpoint.settings, from)? else {
+    let surface = MeshSurface::with_mode(mesh, checkpoint.settings.normals, BuildMode::Static)?;
+    let settings = &checkpoint.settings;
+    let Some(best) = index::held_out_best(inputs, split, &surface, settings, from)? else {
         progress.note(&format!(
             "refractive index: the held-out views' fit has no clear minimum with this stage's mesh; the next stage keeps {:.4}",
             checkpoint.index(inputs)

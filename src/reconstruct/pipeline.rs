@@ -26,6 +26,8 @@ use crate::mesh::io::{read_mesh, write_mesh_with_quality};
 use crate::mesh::stats::quality;
 use crate::mesh::TriMesh;
 use crate::scan::{Ior, Scan};
+use crate::trace::path::MeshSurface;
+use crate::trace::BuildMode;
 use crate::util::atomic::write_json;
 
 /// One reconstruction to run.
@@ -102,13 +104,15 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         return Ok(stopped_outcome(finished, warnings));
     }
     let (result_stage, result) = choose_result(out, &finished, progress)?;
-    let index = index_report(&inputs, given, (&finished, result_stage, &result))?;
+    // One ray-tracing structure of the result serves the index search, the confidence and its map.
+    let settings = &finished.checkpoint.settings;
+    let surface = MeshSurface::with_mode(&result, settings.normals, BuildMode::Static)?;
+    let index = index_report(&inputs, given, (&finished, result_stage, &surface))?;
     if let Some(w) = index.warning() {
         progress.note(&format!("warning: {w}"));
         warnings.push(w);
     }
-    let settings = &finished.checkpoint.settings;
-    let confidence = confidence::measure(&inputs, &result, settings, index.used)?;
+    let confidence = confidence::measure(&inputs, &surface, settings, index.used)?;
     let density = confidence.rays_per_mm2();
     let evaluation = evaluate_against_truth(scan, &result, &density)?;
     let report = Report {
@@ -121,7 +125,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         warnings: &warnings,
         t0,
     };
-    write_results(out, &finished, &result, &report)?;
+    write_results(out, &finished, &surface, &report)?;
     Ok(Outcome {
         checkpoint: finished.checkpoint,
         complete: true,
@@ -190,7 +194,7 @@ fn index_pass(
 fn index_report(
     inputs: &Inputs,
     given: Ior,
-    (finished, result_stage, result): (&Finished, usize, &TriMesh),
+    (finished, result_stage, result): (&Finished, usize, &MeshSurface),
 ) -> Result<IndexReport> {
     let settings = &finished.checkpoint.settings;
     let used = (finished.checkpoint.stages.get(result_stage))
@@ -272,18 +276,17 @@ struct Report<'a> {
     t0: Instant,
 }
 
-/// `result.ply`, `loss.png` and `report.json` of a complete run in `out`.
-fn write_results(out: &Path, finished: &Finished, result: &TriMesh, r: &Report) -> Result<()> {
-    let checkpoint = &finished.checkpoint;
+/// `result.ply`, `loss.png`, `confidence.png` and `report.json` of a complete run in `out`
+/// (the result as `surface` holds it).
+fn write_results(out: &Path, finished: &Finished, surface: &MeshSurface, r: &Report) -> Result<()> {
+    let (checkpoint, result) = (&finished.checkpoint, surface.mesh());
     let density = r.confidence.rays_per_mm2();
     write_mesh_with_quality(&out.join("result.ply"), result, &density)?;
     loss_plot(&out.join("loss.png"), checkpoint)?;
     let summary = r.confidence.summary();
-    let device = crate::trace::Device::new()?;
-    let scene = crate::trace::Scene::new(&device, result, crate::trace::BuildMode::Static)?;
     write_support_map(
         &out.join("confidence.png"),
-        (result, &scene),
+        (result, surface.scene()),
         &density,
         confidence_legend(&density),
     )?;

@@ -692,7 +692,8 @@ fn a_face_no_ray_or_silhouette_sees_is_marked_unconstrained() {
     let (inputs, _) =
         glasscan::reconstruct::load_inputs(&scan, &views, &settings, silhouettes, diagonal)
             .unwrap();
-    let confidence = measure(&inputs, &mesh, &settings, scan.config.ior.nominal()).unwrap();
+    let surface = glasscan::trace::path::MeshSurface::new(&mesh, settings.normals).unwrap();
+    let confidence = measure(&inputs, &surface, &settings, scan.config.ior.nominal()).unwrap();
     let (mut inner_cap, mut side, mut side_refraction) = (0, 0, 0);
     for (v, p) in mesh.positions.iter().enumerate() {
         // The octagon inset by 6 mm: |x| ≤ 29, |z| ≤ 11.5 and |x| + |z| ≤ 29 + 11.5 − 6.
