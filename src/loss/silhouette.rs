@@ -51,22 +51,51 @@ pub struct ContourEdge {
     pub side: f64,
 }
 
-/// Contour edges of `mesh` seen from view `sil` that the probe rays, `probe_px` camera pixels to
-/// either side, confirm (batched through `scene`, which must hold `mesh`).
+/// A mesh with what finding its contour edges from any eye needs: its interior edges and each
+/// face's plane (the unnormalised normal (b − a) × (c − a) and the first corner a), computed
+/// once for all the views of an evaluation rather than twice per edge and view.
+pub struct ContourMesh<'a> {
+    pub mesh: &'a TriMesh,
+    pub edges: &'a [InteriorEdge],
+    planes: Vec<(V3, Point3<f64>)>,
+}
+
+impl<'a> ContourMesh<'a> {
+    /// `edges` must be `mesh`'s interior edges.
+    pub fn new(mesh: &'a TriMesh, edges: &'a [InteriorEdge]) -> Self {
+        let planes = (0..mesh.faces.len())
+            .into_par_iter()
+            .map(|f| (mesh.face_cross(f), mesh.corners(f)[0]))
+            .collect();
+        Self {
+            mesh,
+            edges,
+            planes,
+        }
+    }
+
+    /// Whether each face shows its front (its outward side) to `eye`.
+    fn facing(&self, eye: &Point3<f64>) -> Vec<bool> {
+        (self.planes.par_iter())
+            .map(|(n, a)| n.dot(&(eye - a)) > 0.0)
+            .collect()
+    }
+}
+
+/// Contour edges of `shape` seen from view `sil` that the probe rays, `probe_px` camera pixels
+/// to either side, confirm (batched through `scene`, which must hold the mesh).
 pub fn contour_edges(
-    mesh: &TriMesh,
-    edges: &[InteriorEdge],
+    shape: &ContourMesh,
     sil: &Silhouette,
     scene: &Scene,
     probe_px: f64,
 ) -> Result<Vec<ContourEdge>, TraceError> {
+    let mesh = shape.mesh;
     let to_world = sil.pose.inverse();
     let eye = to_world * Point3::origin();
-    let front = |f: u32| {
-        let [a, _, _] = mesh.corners(f as usize);
-        mesh.face_cross(f as usize).dot(&(eye - a)) > 0.0
-    };
-    let candidates: Vec<(InteriorEdge, [Ray; 2])> = edges
+    let front = shape.facing(&eye);
+    let front = |f: u32| front[f as usize];
+    let candidates: Vec<(InteriorEdge, [Ray; 2])> = (shape.edges)
         .par_iter()
         .filter(|e| front(e.faces[0]) != front(e.faces[1]))
         .filter_map(|e| {
@@ -237,17 +266,17 @@ pub struct SilhouetteSettings {
     pub probe: f64,
 }
 
-/// Adds view `sil`'s silhouette loss and gradient to `acc`.
+/// Adds view `sil`'s silhouette loss and gradient on `shape` (held by `scene`) to `acc`.
 pub fn add_view(
-    mesh: &TriMesh,
-    edges: &[InteriorEdge],
+    shape: &ContourMesh,
     sil: &Silhouette,
     scene: &Scene,
     s: &SilhouetteSettings,
     acc: &mut Accumulator,
 ) -> Result<(), TraceError> {
+    let mesh = shape.mesh;
     let k = pixels_per_unit(mesh, sil, s.unit_mm);
-    let contour = contour_edges(mesh, edges, sil, scene, s.probe * k)?;
+    let contour = contour_edges(shape, sil, scene, s.probe * k)?;
     let chunks: Vec<Contributions> = contour
         .par_chunks(1024)
         .map(|chunk| {

@@ -46,13 +46,17 @@ pub fn add_smoothness(
     kind: Smoothness,
     acc: &mut Accumulator,
 ) {
+    let crosses: Vec<V3> = (0..mesh.faces.len())
+        .into_par_iter()
+        .map(|f| mesh.face_cross(f))
+        .collect();
     let chunks: Vec<Contributions> = edges
         .par_chunks(4096)
         .map(|chunk| {
             let mut c = Contributions::default();
             for e in chunk {
                 let [f, g] = e.faces;
-                match pair_gradient(mesh, f as usize, g as usize, kind) {
+                match pair_gradient(mesh, &crosses, [f as usize, g as usize], kind) {
                     Ok((loss, grads)) => {
                         c.loss += loss;
                         c.used += 1;
@@ -68,14 +72,15 @@ pub fn add_smoothness(
     acc.add(&chunks);
 }
 
-/// ψ of one edge and the gradient on the vertices of its two faces.
-pub fn pair_gradient(
+/// ψ of the edge between faces `f` and `g` and the gradient on the vertices of both; `crosses`
+/// holds every face's [`TriMesh::face_cross`] (computed once for all the edges).
+fn pair_gradient(
     mesh: &TriMesh,
-    f: usize,
-    g: usize,
+    crosses: &[V3],
+    [f, g]: [usize; 2],
     kind: Smoothness,
 ) -> Result<(f64, [(u32, V3); 6]), DropReason> {
-    let (nf, ng) = (mesh.face_cross(f), mesh.face_cross(g));
+    let (nf, ng) = (crosses[f], crosses[g]);
     let (lf, lg) = (nf.norm(), ng.norm());
     if lf == 0.0 || lg == 0.0 {
         return Err(DropReason::NonFinite);

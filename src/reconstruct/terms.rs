@@ -6,7 +6,7 @@ use super::coverage::Coverage;
 use super::validation::Split;
 use crate::loss::membrane::add_membrane;
 use crate::loss::refraction::{add_view, RefractionSettings};
-use crate::loss::silhouette::{self, SilhouetteSettings};
+use crate::loss::silhouette::{self, ContourMesh, SilhouetteSettings};
 use crate::loss::smoothness::add_smoothness;
 use crate::loss::{Accumulator, Drops};
 use crate::mesh::{InteriorEdge, TriMesh};
@@ -235,15 +235,12 @@ pub(super) fn add_silhouettes(
         unit_mm: settings.silhouette_scale * mesh.bbox_diagonal(),
         probe: settings.silhouette_probe,
     };
+    if views.is_empty() {
+        return Ok(());
+    }
+    let shape = ContourMesh::new(mesh, edges);
     for &v in views {
-        silhouette::add_view(
-            mesh,
-            edges,
-            &inputs.silhouettes[v],
-            surface.scene(),
-            &s,
-            acc,
-        )?;
+        silhouette::add_view(&shape, &inputs.silhouettes[v], surface.scene(), &s, acc)?;
     }
     Ok(())
 }

@@ -452,7 +452,7 @@ fn silhouettes_of_physical_captures_keep_their_outline() {
 /// contour (its probed contour edges' midpoints, those within a pixel), every view of the scan:
 /// from the binary masks alone, and refined by the decode's outline coverage.
 fn contour_offsets_px(scan_dir: &std::path::Path) -> (f64, f64) {
-    use glasscan::loss::silhouette::contour_edges;
+    use glasscan::loss::silhouette::{contour_edges, ContourMesh};
     use glasscan::scan::decoded::DecodedScan;
     use glasscan::scan::silhouette::Silhouette;
     use glasscan::trace::{BuildMode, Device, Scene};
@@ -464,7 +464,7 @@ fn contour_offsets_px(scan_dir: &std::path::Path) -> (f64, f64) {
     let (refined, _) = glasscan::hull::silhouettes(&scan, &views).unwrap();
     let decoded = DecodedScan::open(scan_dir, (scan.camera.width, scan.camera.height)).unwrap();
     let mean_offset = |sil: &Silhouette| {
-        let contour = contour_edges(&truth, &edges, sil, &scene, 0.03).unwrap();
+        let contour = contour_edges(&ContourMesh::new(&truth, &edges), sil, &scene, 0.03).unwrap();
         let offsets: Vec<f64> = contour
             .iter()
             .map(|e| {

@@ -11,7 +11,8 @@ use glasscan::loss::refraction::{
     PixelGradient, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
 };
 use glasscan::loss::silhouette::{
-    contour_edges, edge_gradient, outline_disagreement, pixels_per_unit, SilhouetteForm,
+    contour_edges, edge_gradient, outline_disagreement, pixels_per_unit, ContourMesh,
+    SilhouetteForm,
 };
 use glasscan::loss::smoothness::{add_smoothness, Smoothness};
 use glasscan::loss::{Accumulator, Contributions, DropReason, Robust};
@@ -788,7 +789,8 @@ fn silhouette_setup(r: f64, r_mask: f64) -> (TriMesh, Silhouette) {
 fn silhouette_gradient_matches_finite_differences_and_drt_points_the_same_way() {
     let (mesh, sil) = silhouette_setup(30.0, 32.0);
     let scene = Scene::new(&Device::new().unwrap(), &mesh, BuildMode::Static).unwrap();
-    let contour = contour_edges(&mesh, &mesh.interior_edges(), &sil, &scene, 1.0).unwrap();
+    let edges = mesh.interior_edges();
+    let contour = contour_edges(&ContourMesh::new(&mesh, &edges), &sil, &scene, 1.0).unwrap();
     assert!(contour.len() > 30, "{} contour edges", contour.len());
     // Half a millimetre as the outline unit (k ≈ 0.9 px here), held fixed as the mesh moves.
     let unit_px = pixels_per_unit(&mesh, &sil, 0.5);
@@ -862,12 +864,13 @@ fn only_contour_edges_on_the_meshs_own_outline_pull_with_a_short_probe() {
         angles_deg: Turntable::even_angles(8),
     };
     let scene = Scene::new(&Device::new().unwrap(), &mesh, BuildMode::Static).unwrap();
+    let edges = mesh.interior_edges();
     let mean_sd = |probe: f64| {
         let (mut sum, mut n) = (0.0, 0usize);
         for (k, pose) in tt.view_poses().unwrap().into_iter().enumerate() {
             let mask = own_mask(&scene, &cam, &pose);
             let sil = Silhouette::from_mask(k, &mask, &cam, pose).unwrap();
-            for e in contour_edges(&mesh, &mesh.interior_edges(), &sil, &scene, probe).unwrap() {
+            for e in contour_edges(&ContourMesh::new(&mesh, &edges), &sil, &scene, probe).unwrap() {
                 let [a, b] = e
                     .verts
                     .map(|v| cam.project(&(pose * mesh.positions[v as usize])).unwrap());
