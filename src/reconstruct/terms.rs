@@ -230,14 +230,14 @@ pub(super) fn add_silhouettes(
     views: &[usize],
     acc: &mut Accumulator,
 ) -> Result<()> {
+    if views.is_empty() {
+        return Ok(());
+    }
     let s = SilhouetteSettings {
         form: settings.silhouette,
         unit_mm: settings.silhouette_scale * mesh.bbox_diagonal(),
         probe: settings.silhouette_probe,
     };
-    if views.is_empty() {
-        return Ok(());
-    }
     let shape = ContourMesh::new(mesh, edges);
     for &v in views {
         silhouette::add_view(&shape, &inputs.silhouettes[v], surface.scene(), &s, acc)?;
