@@ -9,7 +9,7 @@ use glasscan::eval::confidence::error_by_confidence;
 use glasscan::eval::error_map::{
     confidence_legend, write_error_map, write_support_map, ErrorScale,
 };
-use glasscan::eval::{evaluate, EvalOptions, EvalReport};
+use glasscan::eval::{evaluate_on, EvalOptions, EvalReport};
 use glasscan::mesh::io::{read_mesh, read_mesh_with_quality};
 use glasscan::trace::{BuildMode, Device, Scene};
 use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
@@ -82,7 +82,11 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         thresholds_mm: args.thresholds_mm.clone(),
         seed: args.seed,
     };
-    let report = evaluate(&result, &reference, &options)?;
+    // One ray-tracing structure of each mesh serves the metrics and the maps.
+    let device = Device::new()?;
+    let res_scene = Scene::new(&device, &result, BuildMode::Static)?;
+    let ref_scene = Scene::new(&device, &reference, BuildMode::Static)?;
+    let report = evaluate_on((&result, &res_scene), (&reference, &ref_scene), &options)?;
     outln!(
         "result           {} ({} faces)",
         args.result.display(),
@@ -96,12 +100,7 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     out!("{}", table(&report, args.seed));
     let mut json = report.to_json();
     if let Some(quality) = &quality {
-        let device = Device::new()?;
-        let by = error_by_confidence(
-            &result,
-            quality,
-            &Scene::new(&device, &reference, BuildMode::Static)?,
-        )?;
+        let by = error_by_confidence(&result, quality, &ref_scene)?;
         let [q1, q2, q3, q4] = by.quartiles_mm;
         outln!(
             "by confidence    {q1:.4} / {q2:.4} / {q3:.4} / {q4:.4} mm  (mean vertex error in each quarter of the area, least to most confident by the result's quality; {:.2}×)",
@@ -109,8 +108,12 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         );
         json["error_by_confidence"] = serde_json::to_value(by)?;
         if let Some(path) = &args.confidence_map {
-            let scene = Scene::new(&device, &result, BuildMode::Static)?;
-            write_support_map(path, (&result, &scene), quality, confidence_legend(quality))?;
+            write_support_map(
+                path,
+                (&result, &res_scene),
+                quality,
+                confidence_legend(quality),
+            )?;
             outln!("confidence map   {}", path.display());
         }
     }
@@ -124,12 +127,11 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         if !(max_mm.is_finite() && max_mm > 0.0) {
             bail!("--error-max-mm {max_mm}: it must be a positive number of mm");
         }
-        let device = Device::new()?;
         write_error_map(
             path,
             &result,
-            &Scene::new(&device, &result, BuildMode::Static)?,
-            &Scene::new(&device, &reference, BuildMode::Static)?,
+            &res_scene,
+            &ref_scene,
             if args.error_map_signed {
                 ErrorScale::Signed(&reference)
             } else {

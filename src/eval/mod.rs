@@ -99,12 +99,12 @@ pub fn threshold_key(t: f64) -> String {
     format!("{t:?}")
 }
 
-/// Evaluates `result` against `reference`; see the module documentation for the metrics.
-pub fn evaluate(
+/// Refuses meshes without area and sample counts beyond the memory budget.
+fn check_inputs(
     result: &TriMesh,
     reference: &TriMesh,
     options: &EvalOptions,
-) -> Result<EvalReport, EvalError> {
+) -> Result<(), EvalError> {
     for (name, m) in [("result", result), ("reference", reference)] {
         if m.area().is_nan() || m.area() <= 0.0 {
             return Err(EvalError::NoArea(name));
@@ -116,13 +116,33 @@ pub fn evaluate(
         BYTES_PER_SAMPLE,
         "use fewer --samples",
     )?;
-    let device = Device::new()?;
-    let ref_scene = Scene::new(&device, reference, BuildMode::Static)?;
-    let res_scene = Scene::new(&device, result, BuildMode::Static)?;
+    Ok(())
+}
 
+/// Evaluates `result` against `reference`; see the module documentation for the metrics.
+pub fn evaluate(
+    result: &TriMesh,
+    reference: &TriMesh,
+    options: &EvalOptions,
+) -> Result<EvalReport, EvalError> {
+    check_inputs(result, reference, options)?;
+    let device = Device::new()?;
+    let res_scene = Scene::new(&device, result, BuildMode::Static)?;
+    let ref_scene = Scene::new(&device, reference, BuildMode::Static)?;
+    evaluate_on((result, &res_scene), (reference, &ref_scene), options)
+}
+
+/// As [`evaluate`], with each mesh's ray-tracing structure (a [`BuildMode::Static`] scene of it)
+/// already built, for a caller that uses them again.
+pub fn evaluate_on(
+    (result, res_scene): (&TriMesh, &Scene),
+    (reference, ref_scene): (&TriMesh, &Scene),
+    options: &EvalOptions,
+) -> Result<EvalReport, EvalError> {
+    check_inputs(result, reference, options)?;
     // Different seeds on the two sides, so that evaluating a mesh against itself does not sample
     // the very same points twice.
-    let (pts, closest) = sampled_closest(result, &ref_scene, options.samples, options.seed)?;
+    let (pts, closest) = sampled_closest(result, ref_scene, options.samples, options.seed)?;
     let d_res_signed: Vec<f64> = pts
         .iter()
         .zip(&closest)
@@ -131,7 +151,7 @@ pub fn evaluate(
     let d_res: Vec<f64> = d_res_signed.iter().map(|d| d.abs()).collect();
     let d_ref = sampled_distances(
         reference,
-        &res_scene,
+        res_scene,
         options.samples,
         options.seed.wrapping_add(1),
     )?;

@@ -21,7 +21,7 @@ use super::{
 };
 use crate::eval::confidence::{error_by_confidence, ErrorByConfidence};
 use crate::eval::error_map::{confidence_legend, write_support_map};
-use crate::eval::{evaluate, EvalOptions, EvalReport};
+use crate::eval::{evaluate_on, EvalOptions, EvalReport};
 use crate::mesh::io::{read_mesh, write_mesh_with_quality};
 use crate::mesh::stats::quality;
 use crate::mesh::TriMesh;
@@ -114,7 +114,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     }
     let confidence = confidence::measure(&inputs, &surface, settings, index.used)?;
     let density = confidence.rays_per_mm2();
-    let evaluation = evaluate_against_truth(scan, &result, &density)?;
+    let evaluation = evaluate_against_truth(scan, (&result, surface.scene()), &density)?;
     let report = Report {
         views: views.len(),
         result_stage,
@@ -244,11 +244,11 @@ fn choose_result(
     Ok((best, read_mesh(&stage_path(out, best))?))
 }
 
-/// The result against the scan's `ground_truth.ply`, if it has one, and its error by quarters
-/// of the area ordered by its confidence (`density`, per vertex).
+/// The result (with its static scene) against the scan's `ground_truth.ply`, if it has one, and
+/// its error by quarters of the area ordered by its confidence (`density`, per vertex).
 fn evaluate_against_truth(
     scan: &Scan,
-    result: &TriMesh,
+    (result, scene): (&TriMesh, &crate::trace::Scene),
     density: &[f64],
 ) -> Result<Option<(EvalReport, ErrorByConfidence)>> {
     let truth = scan.dir.join("ground_truth.ply");
@@ -257,10 +257,14 @@ fn evaluate_against_truth(
     }
     let reference = read_mesh(&truth)?;
     let device = crate::trace::Device::new()?;
-    let scene = crate::trace::Scene::new(&device, &reference, crate::trace::BuildMode::Static)?;
+    let ref_scene = crate::trace::Scene::new(&device, &reference, BuildMode::Static)?;
     Ok(Some((
-        evaluate(result, &reference, &EvalOptions::default())?,
-        error_by_confidence(result, density, &scene)?,
+        evaluate_on(
+            (result, scene),
+            (&reference, &ref_scene),
+            &EvalOptions::default(),
+        )?,
+        error_by_confidence(result, density, &ref_scene)?,
     )))
 }
 
