@@ -14,6 +14,7 @@ use std::path::Path;
 use anyhow::{bail, Context, Result};
 use nalgebra::Point3;
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec3b, Vec4w, CV_16U, CV_8U};
+use rayon::prelude::*;
 
 use crate::patterns::{GrayCode, PhaseShift};
 use crate::scan::decoded::{self as form, ViewSummary};
@@ -173,8 +174,9 @@ pub fn decode_captures(
         Some(bits) => bits,
         None => bit_depth_of(&read_capture(&paths[n], size)?)?,
     };
+    // PNG decompression is most of a decode's time: the images are read in parallel.
     let mats = paths
-        .iter()
+        .par_iter()
         .map(|path| to_8bit(read_capture(path, size)?, depth))
         .collect::<Result<Vec<_>>>()?;
     let data: Vec<&[u8]> = mats

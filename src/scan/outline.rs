@@ -70,19 +70,21 @@ impl Piece {
 /// Refines the binary signed distance image `sd` (pixels, > 0 inside; row-major, `width`
 /// wide) with the measured `coverage` (same layout, see [`UNMEASURED`]) of the pixels on the
 /// outline, in place. `inside` is the mask the distances were made from; a pixel keeps its side
-/// of the outline (its sign) whatever its coverage says, at least 0.01 px from it.
-pub fn refine(sd: &mut [f32], inside: &[bool], coverage: &[u8], width: usize) {
+/// of the outline (its sign) whatever its coverage says, at least 0.01 px from it. The images
+/// are a window of the camera's whose first pixel is the camera's `origin` (column, row):
+/// positions are reckoned in the camera's pixels, so a window refines as its whole image would.
+pub fn refine(sd: &mut [f32], inside: &[bool], coverage: &[u8], width: usize, origin: [usize; 2]) {
     let height = sd.len() / width.max(1);
     if width < 2 || height < 2 {
         return;
     }
-    let cells = contour_pieces(inside, coverage, width, height);
+    let cells = contour_pieces(inside, coverage, width, height, origin);
     let reach = BAND_PX.ceil() as usize + 1;
     let refined: Vec<(usize, f32)> = (0..sd.len())
         .filter(|&i| sd[i].abs() <= BAND_PX)
         .filter_map(|i| {
             let (x, y) = (i % width, i / width);
-            let p = V2::new(x as f64, y as f64);
+            let p = V2::new((x + origin[0]) as f64, (y + origin[1]) as f64);
             let mut best = f64::INFINITY;
             for cy in y.saturating_sub(reach)..(y + reach).min(height - 1) {
                 for cx in x.saturating_sub(reach)..(x + reach).min(width - 1) {
@@ -112,6 +114,7 @@ fn contour_pieces(
     coverage: &[u8],
     width: usize,
     height: usize,
+    [ox, oy]: [usize; 2],
 ) -> Vec<Vec<Piece>> {
     let c = |i: usize| decode_coverage(coverage[i], inside[i]);
     (0..(width - 1) * (height - 1))
@@ -124,11 +127,12 @@ fn contour_pieces(
                 (y + 1) * width + x + 1,
                 (y + 1) * width + x,
             ];
+            let (px, py) = ((x + ox) as f64, (y + oy) as f64);
             let pos = [
-                V2::new(x as f64, y as f64),
-                V2::new(x as f64 + 1.0, y as f64),
-                V2::new(x as f64 + 1.0, y as f64 + 1.0),
-                V2::new(x as f64, y as f64 + 1.0),
+                V2::new(px, py),
+                V2::new(px + 1.0, py),
+                V2::new(px + 1.0, py + 1.0),
+                V2::new(px, py + 1.0),
             ];
             let side = idx.map(|i| inside[i]);
             if side.iter().all(|&s| s == side[0]) {
@@ -255,7 +259,7 @@ mod tests {
         for blur in [0.0, 0.7] {
             let (inside, sd, coverage) = disk(w, centre, r, blur);
             let mut refined = sd.clone();
-            refine(&mut refined, &inside, &coverage, w);
+            refine(&mut refined, &inside, &coverage, w, [0, 0]);
             let (binary, sub) = (
                 worst_on_circle(&sd, w, centre, r),
                 worst_on_circle(&refined, w, centre, r),
@@ -290,7 +294,7 @@ mod tests {
         let (inside, sd, _) = disk(w, centre, r, 0.0);
         let coverage: Vec<u8> = inside.iter().map(|&i| if i { 255 } else { 0 }).collect();
         let mut refined = sd.clone();
-        refine(&mut refined, &inside, &coverage, w);
+        refine(&mut refined, &inside, &coverage, w, [0, 0]);
         // The contour runs through the midpoints between the two sides' pixel centres: the
         // staircase's straight runs keep ±0.5, its corners are cut.
         for (i, (a, b)) in sd.iter().zip(&refined).enumerate() {

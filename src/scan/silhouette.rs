@@ -26,18 +26,95 @@ pub struct Silhouette {
     pub camera: Camera,
     /// World → camera transform of the view (mm).
     pub pose: Isometry3<f64>,
-    /// Per pixel (row-major): distance to the silhouette's outline, pixels, > 0 inside. The
-    /// outline runs between pixel centres, so a boundary pixel has ±0.5.
+    /// The part of the image the distances are kept for ([`Window`]).
+    window: Window,
+    /// Per pixel of the window (row-major): distance to the silhouette's outline, pixels, > 0
+    /// inside. The outline runs between pixel centres, so a boundary pixel has ±0.5.
     sd: Vec<f32>,
     /// Object pixels.
     pub area_px: usize,
-    /// Pixels (row-major indices) of the holes the decoder filled, outside in `sd`.
+    /// Pixels (row-major indices in the window) of the holes the decoder filled, outside in `sd`.
     filled: Vec<u32>,
     /// The mask reaches the image border (the object may be cut off).
     pub touches_border: bool,
-    /// The measured coverage of the outline's pixels the distances were refined with, if any
-    /// (`view_NNN_coverage.png`'s values).
+    /// The measured coverage of the window's outline pixels the distances were refined with, if
+    /// any (`view_NNN_coverage.png`'s values).
     coverage: Option<Vec<u8>>,
+}
+
+/// The rectangle of the image a silhouette keeps its distances for (pixels, columns `x0..x0 +
+/// w`, rows `y0..y0 + h`): the bounding box of the mask's pixels grown by [`WINDOW_MARGIN`] of its
+/// longer side, and at least 2 pixels, on every side, clipped to the image. The memory then
+/// follows the object's size in the image, not the camera's pixel count; distances inside the
+/// window are those of the whole image (the nearest pixel of the other kind is always inside it).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Window {
+    x0: usize,
+    y0: usize,
+    w: usize,
+    h: usize,
+    /// Pixels between the mask's bounding box and every side of the window not on the image's
+    /// border: a point beyond such a side is at least this much more outside.
+    margin: f64,
+}
+
+/// How far a silhouette's window reaches beyond the mask's bounding box, a share of its longer
+/// side: the contour and the hull's voxels near the outline stay inside it.
+pub const WINDOW_MARGIN: f64 = 0.25;
+
+impl Window {
+    /// The window of a `width`×`height` mask whose pixels with `set(i)` are the object (or a
+    /// filled hole); the whole image when there are none.
+    fn around(width: usize, height: usize, set: impl Fn(usize) -> bool) -> Self {
+        let (mut lo, mut hi) = ([usize::MAX; 2], [0usize; 2]);
+        for i in (0..width * height).filter(|&i| set(i)) {
+            let (x, y) = (i % width, i / width);
+            lo = [lo[0].min(x), lo[1].min(y)];
+            hi = [hi[0].max(x), hi[1].max(y)];
+        }
+        if lo[0] > hi[0] {
+            return Window {
+                x0: 0,
+                y0: 0,
+                w: width,
+                h: height,
+                margin: 0.0,
+            };
+        }
+        let side = (hi[0] - lo[0]).max(hi[1] - lo[1]) + 1;
+        let m = ((WINDOW_MARGIN * side as f64).ceil() as usize).max(2);
+        let (x0, y0) = (lo[0].saturating_sub(m), lo[1].saturating_sub(m));
+        let (x1, y1) = ((hi[0] + m).min(width - 1), (hi[1] + m).min(height - 1));
+        Window {
+            x0,
+            y0,
+            w: x1 - x0 + 1,
+            h: y1 - y0 + 1,
+            margin: m as f64,
+        }
+    }
+
+    /// The window's part of a row-major image of width `width`.
+    fn crop<T: Copy>(&self, image: &[T], width: usize) -> Vec<T> {
+        (self.y0..self.y0 + self.h)
+            .flat_map(|y| {
+                image[y * width + self.x0..y * width + self.x0 + self.w]
+                    .iter()
+                    .copied()
+            })
+            .collect()
+    }
+
+    /// The image pixel of the window's first pixel.
+    fn origin(&self) -> [usize; 2] {
+        [self.x0, self.y0]
+    }
+
+    /// Image pixel (x, y) as an index into the window, if it lies in it.
+    fn index(&self, x: usize, y: usize) -> Option<usize> {
+        let (i, j) = (x.checked_sub(self.x0)?, y.checked_sub(self.y0)?);
+        (i < self.w && j < self.h).then_some(j * self.w + i)
+    }
 }
 
 impl Silhouette {
@@ -56,6 +133,11 @@ impl Silhouette {
                 mask.len()
             );
         }
+        let object = |i: usize| is_object(mask[i]);
+        let touches_border = (0..w).any(|x| object(x) || object((h - 1) * w + x))
+            || (0..h).any(|y| object(y * w) || object(y * w + w - 1));
+        let window = Window::around(w, h, |i| mask[i] != 0);
+        let mask = window.crop(mask, w);
         let inside: Vec<u8> = mask
             .iter()
             .map(|&m| if is_object(m) { 255 } else { 0 })
@@ -63,49 +145,68 @@ impl Silhouette {
         let filled = (0..mask.len() as u32)
             .filter(|&i| mask[i as usize] == MASK_FILLED)
             .collect();
-        let outside: Vec<u8> = inside.iter().map(|&m| 255 - m).collect();
+        let base = Silhouette {
+            view,
+            camera: camera.clone(),
+            pose,
+            window,
+            sd: Vec::new(),
+            area_px: 0,
+            filled,
+            touches_border,
+            coverage: None,
+        };
+        base.with_inside(&inside)
+    }
+
+    /// This silhouette's distances made from `inside` (the window's pixels, non-zero for the
+    /// object).
+    fn with_inside(mut self, inside: &[u8]) -> Result<Self> {
+        let (w, h) = (self.window.w, self.window.h);
+        let outside: Vec<u8> = inside
+            .iter()
+            .map(|&m| if m != 0 { 0 } else { 255 })
+            .collect();
         let dist = |src: &[u8]| -> Result<Vec<f32>> {
             let m = Mat::new_rows_cols_with_data(h as i32, w as i32, src)?;
             let mut d = Mat::default();
             distance_transform(&m, &mut d, DIST_L2, DIST_MASK_PRECISE, CV_32F)?;
             Ok(d.data_typed::<f32>()?.to_vec())
         };
-        let area_px = inside.iter().filter(|&&m| m != 0).count();
+        self.area_px = inside.iter().filter(|&&m| m != 0).count();
         // With no pixel of one kind OpenCV returns a huge distance; the caller rejects empty
         // masks, and a full mask is simply "inside everywhere on the image".
-        let (din, dout) = (dist(&inside)?, dist(&outside)?);
-        let sd = inside
+        let (din, dout) = (dist(inside)?, dist(&outside)?);
+        self.sd = inside
             .iter()
             .zip(din.iter().zip(&dout))
             .map(|(&m, (&a, &b))| if m != 0 { a - 0.5 } else { 0.5 - b })
             .collect();
-        let touches_border = (0..w).any(|x| inside[x] != 0 || inside[(h - 1) * w + x] != 0)
-            || (0..h).any(|y| inside[y * w] != 0 || inside[y * w + w - 1] != 0);
-        Ok(Self {
-            view,
-            camera: camera.clone(),
-            pose,
-            sd,
-            area_px,
-            filled,
-            touches_border,
-            coverage: None,
-        })
+        Ok(self)
     }
 
     /// This silhouette with its distances near the outline refined by the measured `coverage`
     /// of the outline's pixels (row-major, the camera's size; see [`super::outline::UNMEASURED`]).
     pub fn with_coverage(mut self, coverage: Vec<u8>) -> Result<Self> {
-        if coverage.len() != self.sd.len() {
+        let width = self.camera.width as usize;
+        if coverage.len() != width * self.camera.height as usize {
             bail!(
-                "view {}: the coverage image has {} pixels, the camera {}",
+                "view {}: the coverage image has {} pixels, the camera {}×{}",
                 self.view,
                 coverage.len(),
-                self.sd.len()
+                self.camera.width,
+                self.camera.height
             );
         }
+        let coverage = self.window.crop(&coverage, width);
         let inside: Vec<bool> = self.sd.iter().map(|&d| d > 0.0).collect();
-        super::outline::refine(&mut self.sd, &inside, &coverage, self.camera.width as usize);
+        super::outline::refine(
+            &mut self.sd,
+            &inside,
+            &coverage,
+            self.window.w,
+            self.window.origin(),
+        );
         self.coverage = Some(coverage);
         Ok(self)
     }
@@ -116,27 +217,54 @@ impl Silhouette {
         if self.filled.is_empty() {
             return Ok(Cow::Borrowed(self));
         }
-        let mut mask: Vec<u8> = self.sd.iter().map(|&d| u8::from(d > 0.0) * 255).collect();
+        let mut inside: Vec<u8> = self.sd.iter().map(|&d| u8::from(d > 0.0) * 255).collect();
         for &i in &self.filled {
-            mask[i as usize] = 255;
+            inside[i as usize] = 255;
         }
-        let filled = Self::from_mask(self.view, &mask, &self.camera, self.pose)?;
-        let Some(coverage) = &self.coverage else {
-            return Ok(Cow::Owned(filled));
-        };
-        let mut coverage = coverage.clone();
-        for &i in &self.filled {
-            coverage[i as usize] = 255;
+        let mut filled = self.clone_without_images().with_inside(&inside)?;
+        if let Some(coverage) = &self.coverage {
+            let mut coverage = coverage.clone();
+            for &i in &self.filled {
+                coverage[i as usize] = 255;
+            }
+            let inside: Vec<bool> = filled.sd.iter().map(|&d| d > 0.0).collect();
+            super::outline::refine(
+                &mut filled.sd,
+                &inside,
+                &coverage,
+                filled.window.w,
+                filled.window.origin(),
+            );
+            filled.coverage = Some(coverage);
         }
-        filled.with_coverage(coverage).map(Cow::Owned)
+        Ok(Cow::Owned(filled))
     }
 
-    /// The four pixels around (x, y) (clamped to the image) and the position between them.
+    /// This silhouette's view, camera, pose and window, without its images.
+    fn clone_without_images(&self) -> Self {
+        Silhouette {
+            view: self.view,
+            camera: self.camera.clone(),
+            pose: self.pose,
+            window: self.window,
+            sd: Vec::new(),
+            area_px: self.area_px,
+            filled: Vec::new(),
+            touches_border: self.touches_border,
+            coverage: None,
+        }
+    }
+
+    /// The four window pixels around window point (x, y) (clamped to the window) and the
+    /// position between them.
     fn cell(&self, x: f64, y: f64) -> ([f64; 4], f64, f64) {
-        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let (w, h) = (self.window.w, self.window.h);
         let (x, y) = (x.clamp(0.0, (w - 1) as f64), y.clamp(0.0, (h - 1) as f64));
-        let (x0, y0) = ((x as usize).min(w - 2), (y as usize).min(h - 2));
-        let at = |i: usize, j: usize| self.sd[j * w + i] as f64;
+        let (x0, y0) = (
+            (x as usize).min(w.max(2) - 2),
+            (y as usize).min(h.max(2) - 2),
+        );
+        let at = |i: usize, j: usize| self.sd[j.min(h - 1) * w + i.min(w - 1)] as f64;
         (
             [
                 at(x0, y0),
@@ -152,24 +280,41 @@ impl Silhouette {
     /// Whether pixel (x, y) (column, row; inside the image) is an object pixel of the mask (a
     /// hole the decoder filled is not).
     pub fn is_object_px(&self, x: usize, y: usize) -> bool {
-        self.sd[y * self.camera.width as usize + x] > 0.0
+        self.window.index(x, y).is_some_and(|i| self.sd[i] > 0.0)
     }
 
     /// The signed distance image at pixel coordinates (x, y), bilinear between pixel centres
     /// (clamped to the image).
     pub fn sd_px(&self, x: f64, y: f64) -> f64 {
-        let (v, fx, fy) = self.cell(x, y);
-        bilinear(&v, fx, fy)
+        self.sample_px(x, y).0
     }
 
-    /// [`Self::sd_px`] and its gradient (per pixel).
+    /// [`Self::sd_px`] and its gradient (per pixel). Beyond the window (a point at least its
+    /// margin from every object pixel) the distance grows from the margin by the distance to
+    /// the window, pointing away from it: never more outside than the whole image says.
     pub fn sample_px(&self, x: f64, y: f64) -> (f64, f64, f64) {
-        let (v, fx, fy) = self.cell(x, y);
+        let (w, h) = (self.camera.width as f64, self.camera.height as f64);
+        let (x, y) = (x.clamp(0.0, w - 1.0), y.clamp(0.0, h - 1.0));
+        let wn = &self.window;
+        let (lx, ly) = (x - wn.x0 as f64, y - wn.y0 as f64);
+        let (cx, cy) = (
+            lx.clamp(0.0, (wn.w - 1) as f64),
+            ly.clamp(0.0, (wn.h - 1) as f64),
+        );
+        let (v, fx, fy) = self.cell(cx, cy);
         let [a, b, c, d] = v;
+        let beyond = (lx - cx).hypot(ly - cy);
+        if beyond == 0.0 {
+            return (
+                bilinear(&v, fx, fy),
+                (1.0 - fy) * (b - a) + fy * (d - c),
+                (1.0 - fx) * (c - a) + fx * (d - b),
+            );
+        }
         (
-            bilinear(&v, fx, fy),
-            (1.0 - fy) * (b - a) + fy * (d - c),
-            (1.0 - fx) * (c - a) + fx * (d - b),
+            0.5 - wn.margin - beyond,
+            -(lx - cx) / beyond,
+            -(ly - cy) / beyond,
         )
     }
 
@@ -191,4 +336,95 @@ impl Silhouette {
 /// Bilinear interpolation of the corner values [(0,0), (1,0), (0,1), (1,1)] at (fx, fy).
 fn bilinear(&[a, b, c, d]: &[f64; 4], fx: f64, fy: f64) -> f64 {
     (1.0 - fy) * ((1.0 - fx) * a + fx * b) + fy * ((1.0 - fx) * c + fx * d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A silhouette keeps its distances for a window around the object: inside it they are the
+    /// whole image's, bit for bit (also refined by a measured coverage), beyond it a point is
+    /// never said to be further outside than the whole image says, and the window is a small
+    /// part of a large image.
+    #[test]
+    fn distances_in_the_window_are_the_whole_images_and_beyond_it_never_further_out() {
+        let (w, h) = (1600usize, 1200usize);
+        let camera = Camera {
+            width: w as u32,
+            height: h as u32,
+            fx: 1000.0,
+            fy: 1000.0,
+            cx: 800.0,
+            cy: 600.0,
+            dist: [0.0; 5],
+        };
+        // An L-shaped object with a filled hole, off the image's centre.
+        let mask: Vec<u8> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                let body = (900..1100).contains(&x) && (300..700).contains(&y);
+                let foot = (1000..1250).contains(&x) && (600..700).contains(&y);
+                let hole = (950..970).contains(&x) && (400..420).contains(&y);
+                match (body || foot, hole) {
+                    (true, true) => MASK_FILLED,
+                    (true, false) => 255,
+                    _ => 0,
+                }
+            })
+            .collect();
+        let sil = Silhouette::from_mask(0, &mask, &camera, Isometry3::identity()).unwrap();
+        assert!(sil.sd.len() * 3 < w * h, "window {:?}", sil.window);
+        // The whole image's signed distance, as the silhouette computed it before it had a window.
+        let full = |inside: bool| -> Vec<f32> {
+            let src: Vec<u8> = mask
+                .iter()
+                .map(|&m| if is_object(m) == inside { 255 } else { 0 })
+                .collect();
+            let m = Mat::new_rows_cols_with_data(h as i32, w as i32, &src).unwrap();
+            let mut d = Mat::default();
+            distance_transform(&m, &mut d, DIST_L2, DIST_MASK_PRECISE, CV_32F).unwrap();
+            d.data_typed::<f32>().unwrap().to_vec()
+        };
+        let (din, dout) = (full(true), full(false));
+        let mut whole: Vec<f32> = (0..w * h)
+            .map(|i| {
+                if is_object(mask[i]) {
+                    din[i] - 0.5
+                } else {
+                    0.5 - dout[i]
+                }
+            })
+            .collect();
+        // Coverage measured on the outline's pixels (object side 200, background side 60).
+        let coverage: Vec<u8> = (0..w * h)
+            .map(|i| match (whole[i] > 0.0, whole[i].abs() < 1.0) {
+                (true, true) => 200,
+                (false, true) => 60,
+                (true, false) => 255,
+                (false, false) => 0,
+            })
+            .collect();
+        let inside: Vec<bool> = whole.iter().map(|&d| d > 0.0).collect();
+        super::super::outline::refine(&mut whole, &inside, &coverage, w, [0, 0]);
+        let sil = sil.with_coverage(coverage).unwrap();
+        let (mut inside_window, mut beyond) = (0, 0);
+        for y in (0..h).step_by(3) {
+            for x in (0..w).step_by(3) {
+                let (got, want) = (sil.sd_px(x as f64, y as f64), whole[y * w + x] as f64);
+                assert_eq!(sil.is_object_px(x, y), is_object(mask[y * w + x]));
+                if sil.window.index(x, y).is_some() {
+                    inside_window += 1;
+                    assert_eq!(got, want, "({x}, {y})");
+                } else {
+                    beyond += 1;
+                    assert!(got < 0.0 && got >= want, "({x}, {y}): {got} against {want}");
+                }
+            }
+        }
+        assert!(inside_window > 1000 && beyond > 1000);
+        // The hull's view counts the filled hole inside, with the same window.
+        let filled = sil.with_holes_filled().unwrap();
+        assert!(sil.sd_px(960.0, 410.0) < 0.0 && filled.sd_px(960.0, 410.0) > 0.0);
+        assert_eq!(filled.window, sil.window);
+    }
 }

@@ -69,7 +69,8 @@ impl Light {
         light
     }
 
-    fn empty(pixels: usize) -> Self {
+    /// No light yet, room for `pixels` pixels: bands of rows are added to it in image order.
+    pub fn empty(pixels: usize) -> Self {
         let mut offsets = Vec::with_capacity(pixels + 1);
         offsets.push(0);
         Light {
@@ -95,15 +96,16 @@ struct Branch {
     reflections: u32,
 }
 
-/// The physical transport of one view: `samples` are the simple trace of the same rays (in
-/// pixel order, `spp` per pixel), which says which rays may meet the object.
-pub fn physical_light(
+/// The physical transport of a band of image rows of one view, added to `light` (which holds the
+/// rows above it): `samples` are the simple trace of the same rays (in pixel order, `spp` per
+/// pixel), which says which rays may meet the object.
+pub fn add_physical_light(
     v: &ViewSetup,
     surface: &dyn Surface,
-    rays: &[Option<Ray>],
-    samples: &[Sample],
+    (rays, samples): (&[Option<Ray>], &[Sample]),
     spp: u32,
-) -> Result<Light, TraceError> {
+    light: &mut Light,
+) -> Result<(), TraceError> {
     let to_world = v.pose.inverse();
     let screen = v.screen.transformed(&to_world);
     let start = |(sample, r): (usize, &Ray)| Branch {
@@ -130,9 +132,9 @@ pub fn physical_light(
     let dropped: f64 = traced.iter().map(|t| t.1).sum();
     let mut exits: Vec<Branch> = traced.into_iter().flat_map(|t| t.0).collect();
     exits.extend(miss);
-    let mut light = gather(exits, &screen, samples, spp);
-    light.dropped_weight = dropped;
-    Ok(light)
+    gather(exits, &screen, samples, spp, light);
+    light.dropped_weight += dropped;
+    Ok(())
 }
 
 /// Follows `branches` through `surface` on the calling thread, one interface at a time for all;
@@ -228,10 +230,15 @@ fn split(
     dropped
 }
 
-/// The exits landed on the monitor, gathered per pixel in sample order.
-fn gather(mut exits: Vec<Branch>, screen: &Screen, samples: &[Sample], spp: u32) -> Light {
+/// The exits landed on the monitor, gathered per pixel in sample order and added to `light`.
+fn gather(
+    mut exits: Vec<Branch>,
+    screen: &Screen,
+    samples: &[Sample],
+    spp: u32,
+    light: &mut Light,
+) {
     exits.sort_by_key(|b| b.sample);
-    let mut light = Light::empty(samples.len() / spp as usize);
     let mut k = 0;
     for (p, px) in samples.chunks(spp as usize).enumerate() {
         let end = (p + 1) * spp as usize;
@@ -253,7 +260,6 @@ fn gather(mut exits: Vec<Branch>, screen: &Screen, samples: &[Sample], spp: u32)
         }
         light.offsets.push(light.points.len());
     }
-    light
 }
 
 #[cfg(test)]

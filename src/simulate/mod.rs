@@ -34,10 +34,12 @@ use crate::util::folder::{StagedFolder, FORCE_HINT};
 use crate::util::image::{write_pixels, write_png};
 use crate::util::{median, scatter_seed};
 pub use light::Transport;
-use light::{physical_light, Light};
+use light::{add_physical_light, Light};
 use options::check_options;
 pub use options::{SimulateOptions, MAX_SPP, MAX_VIEWS};
-use render::{camera_rays, shade, shade_phase, trace_view, Outcome, Sample, ViewSetup};
+use render::{
+    camera_rays, shade, shade_phase, trace_view, Outcome, Sample, ViewSetup, BAND_SAMPLES,
+};
 
 /// Shares of the object pixels (pixel-centre rays that meet the object), over all views.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -279,8 +281,8 @@ fn render_views(
     }
     for (k, pose) in poses.iter().enumerate() {
         let view = setup(*pose, Some(&surface));
-        let rays = camera_rays(&view, o.spp);
-        let samples = trace_view(&view, &rays)?;
+        let physical = (!o.decoded_only && o.transport == Transport::Physical).then_some(&surface);
+        let (samples, light) = trace_in_bands(&view, o.spp, physical, BAND_SAMPLES)?;
         tally.add(&samples, o.spp);
         write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
         if o.decoded_only {
@@ -295,10 +297,7 @@ fn render_views(
             )?);
         } else {
             let seed = view_seed(o.seed, k);
-            let light = match o.transport {
-                Transport::Simple => Light::from_samples(&samples, o.spp),
-                Transport::Physical => physical_light(&view, &surface, &rays, &samples, o.spp)?,
-            };
+            let light = light.unwrap_or_else(|| Light::from_samples(&samples, o.spp));
             tally.add_light(&light);
             write_captures(&scan.view_dir(k), &light, o, &code, seed)?;
         }
@@ -323,7 +322,7 @@ fn render_background(
     o: &SimulateOptions,
     code: &GrayCode,
 ) -> Result<f64> {
-    let background = trace_view(setup, &camera_rays(setup, o.spp))?;
+    let (background, _) = trace_in_bands(setup, o.spp, None, BAND_SAMPLES)?;
     let seen = background
         .iter()
         .filter(|s| matches!(s.outcome, Outcome::Monitor(_)))
@@ -343,6 +342,29 @@ fn render_background(
         calibration::write_calibration_images(scan, out, o)?;
     }
     Ok(median(footprints(&background, o.spp, |_| true)))
+}
+
+/// Traces every area sample of view `v` band by band of image rows ([`render::row_bands`], about
+/// `band_samples` each), so no more than one band's rays and light branches are held at once;
+/// with a `physical` surface, also the physical transport's light.
+fn trace_in_bands(
+    v: &ViewSetup,
+    spp: u32,
+    physical: Option<&MeshSurface>,
+    band_samples: usize,
+) -> Result<(Vec<Sample>, Option<Light>)> {
+    let pixels = v.camera.width as usize * v.camera.height as usize;
+    let mut samples = Vec::with_capacity(pixels * spp as usize);
+    let mut light = physical.map(|_| Light::empty(pixels));
+    for rows in render::row_bands(v.camera, spp, band_samples) {
+        let rays = camera_rays(v, spp, rows);
+        let band = trace_view(v, &rays)?;
+        if let (Some(surface), Some(light)) = (physical, light.as_mut()) {
+            add_physical_light(v, surface, (&rays, &band), spp, light)?;
+        }
+        samples.extend(band);
+    }
+    Ok((samples, light))
 }
 
 /// The noise seed of view `k`'s captures: the scan's seed scattered, so scans with seeds s and
@@ -666,6 +688,60 @@ mod tests {
         }
         for seed in 1..16 {
             assert!(!seen.contains(&background_seed(seed)), "seed {seed}");
+        }
+    }
+
+    /// A view traced in bands of a few rows gives the samples and the physical light of the view
+    /// traced whole, bit for bit, in the same order.
+    #[test]
+    fn a_view_traced_in_bands_is_the_view_traced_whole() {
+        let sphere = crate::mesh::shapes::icosphere(20.0, 3);
+        let surface = MeshSurface::new(&sphere, crate::trace::path::NormalModel::Face).unwrap();
+        let camera = Camera {
+            width: 48,
+            height: 36,
+            fx: 60.0,
+            fy: 60.0,
+            cx: 23.5,
+            cy: 17.5,
+            dist: [0.0; 5],
+        };
+        let screen = Screen {
+            width_px: 400,
+            height_px: 300,
+            pitch_mm: 0.5,
+            pose: Isometry3::translation(-100.0, -75.0, 250.0),
+        };
+        let view = ViewSetup {
+            camera: &camera,
+            pose: Isometry3::translation(0.0, 0.0, 150.0),
+            screen: &screen,
+            surface: Some(&surface),
+            bound_centre: Point3::origin(),
+            bound_radius: 21.0,
+            settings: PathSettings::new(1.5, 10),
+            fresnel: true,
+        };
+        let (spp, whole) = (4, usize::MAX);
+        let (samples, light) = trace_in_bands(&view, spp, Some(&surface), whole).unwrap();
+        let light = light.unwrap();
+        assert!(light.ghost_weight > 0.0, "the sphere shows ghosts");
+        for band in [1, 48 * 4 * 5 + 7] {
+            let (s, l) = trace_in_bands(&view, spp, Some(&surface), band).unwrap();
+            let l = l.unwrap();
+            let same = |a: &Sample, b: &Sample| {
+                a.outcome == b.outcome && a.monitor == b.monitor && a.weight == b.weight
+            };
+            assert_eq!(s.len(), samples.len());
+            assert!(
+                s.iter().zip(&samples).all(|(a, b)| same(a, b)),
+                "band {band}"
+            );
+            assert_eq!(
+                (&l.offsets, &l.points, &l.weights),
+                (&light.offsets, &light.points, &light.weights)
+            );
+            assert!((l.object_weight - light.object_weight).abs() < 1e-9 * light.object_weight);
         }
     }
 }

@@ -1,6 +1,8 @@
 //! One view of a simulated scan: trace every pixel's area samples once (camera → object →
 //! monitor), then shade all pattern images from those paths, and keep the ground truth.
 
+use std::ops::Range;
+
 use nalgebra::{Isometry3, Point2, Point3, Vector3};
 use rayon::prelude::*;
 
@@ -85,14 +87,32 @@ pub struct ViewSetup<'a> {
     pub fresnel: bool,
 }
 
-/// The camera rays of `spp` area samples of every pixel, world frame (row-major; samples of a
-/// pixel together; `None` where the lens model has no ray).
-pub fn camera_rays(v: &ViewSetup, spp: u32) -> Vec<Option<Ray>> {
-    let (w, h) = (v.camera.width, v.camera.height);
+/// Area samples in one band of image rows (see [`row_bands`]): a view is traced band by band,
+/// so its rays, paths and light branches are held for one band at a time, whatever the camera's
+/// pixel count.
+pub const BAND_SAMPLES: usize = 1 << 20;
+
+/// The image rows of a camera, `height` of them, cut into consecutive bands of about
+/// `band_samples` area samples each (at least one row).
+pub fn row_bands(
+    camera: &Camera,
+    spp: u32,
+    band_samples: usize,
+) -> impl Iterator<Item = Range<u32>> {
+    let per_row = (camera.width as usize * spp as usize).max(1);
+    let rows = (band_samples / per_row).clamp(1, u32::MAX as usize) as u32;
+    let height = camera.height;
+    (0..height.div_ceil(rows)).map(move |b| b * rows..((b + 1) * rows).min(height))
+}
+
+/// The camera rays of `spp` area samples of every pixel in image rows `rows`, world frame
+/// (row-major; samples of a pixel together; `None` where the lens model has no ray).
+pub fn camera_rays(v: &ViewSetup, spp: u32, rows: Range<u32>) -> Vec<Option<Ray>> {
+    let w = v.camera.width as usize;
     let to_world = v.pose.inverse();
     let eye = to_world * Point3::origin();
     let offsets = sample_offsets(spp);
-    (0..h * w)
+    (rows.start as usize * w..rows.end as usize * w)
         .into_par_iter()
         .flat_map_iter(|p| {
             let (x, y) = ((p % w) as f64, (p / w) as f64);

@@ -961,7 +961,8 @@ fn exact_views(surface: &MeshSurface) -> Vec<ViewTargets> {
                 settings: PathSettings::new(1.5, 4),
                 fresnel: false,
             };
-            let samples = trace_view(&setup, &camera_rays(&setup, 1)).unwrap();
+            let samples =
+                trace_view(&setup, &camera_rays(&setup, 1, 0..setup.camera.height)).unwrap();
             let to_world = pose.inverse();
             let world_screen = screen.transformed(&to_world);
             ViewTargets {
