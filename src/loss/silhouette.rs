@@ -138,13 +138,16 @@ pub fn contour_edges(
 /// other way round. Unlike the contour-edge loss, whose mean over edges changes with the
 /// number and the zigzag of the mesh's contour edges, it measures the outline alike at every
 /// edge length (the held-out views' test of whether a finer stage fits better).
-/// Rays are traced only within the mesh's projected bounding box; the mask's object pixels
-/// outside it are counted as they are.
+/// Rays are traced only within the mesh's projected bounding box, through every `stride`-th
+/// pixel of every `stride`-th row, each standing for stride² pixels (the same lattice for every
+/// mesh compared); the mask's object pixels outside the box are counted as they are.
 pub fn outline_disagreement(
     mesh: &TriMesh,
     sil: &Silhouette,
     scene: &Scene,
+    stride: usize,
 ) -> Result<usize, TraceError> {
+    let stride = stride.max(1);
     let (w, h) = (sil.camera.width as usize, sil.camera.height as usize);
     let projected = mesh
         .positions
@@ -166,7 +169,8 @@ pub fn outline_disagreement(
     let to_world = sil.pose.inverse();
     let eye = to_world * Point3::origin();
     let pixels: Vec<(usize, usize)> = (y0..y1)
-        .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+        .step_by(stride)
+        .flat_map(|y| (x0..x1).step_by(stride).map(move |x| (x, y)))
         .collect();
     let rays: Vec<Ray> = pixels
         .iter()
@@ -177,13 +181,14 @@ pub fn outline_disagreement(
         })
         .collect();
     let hits = scene.intersect(&rays, false)?;
-    let (mut disagree, mut object_in_box) = (0, 0);
-    for (&(x, y), hit) in pixels.iter().zip(&hits) {
-        let object = sil.is_object_px(x, y);
-        object_in_box += usize::from(object);
-        disagree += usize::from(object != hit.is_some());
-    }
-    Ok(disagree + (sil.area_px - object_in_box))
+    let disagree = (pixels.iter().zip(&hits))
+        .filter(|(&(x, y), hit)| sil.is_object_px(x, y) != hit.is_some())
+        .count();
+    let object_in_box = (y0..y1)
+        .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+        .filter(|&(x, y)| sil.is_object_px(x, y))
+        .count();
+    Ok(disagree * stride * stride + (sil.area_px - object_in_box))
 }
 
 /// Camera pixels per `unit_mm` at the object in view `sil`: at the depth of the bounding-box

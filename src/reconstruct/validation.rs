@@ -13,9 +13,11 @@ use super::terms::Sample;
 use serde::{Deserialize, Serialize};
 
 use super::config::Settings;
+use super::inputs::STORED_DENSITY;
 use super::Inputs;
-use crate::loss::silhouette::outline_disagreement;
+use crate::loss::silhouette::{outline_disagreement, pixels_per_unit};
 use crate::mesh::TriMesh;
+use crate::scan::silhouette::Silhouette;
 use crate::trace::path::MeshSurface;
 use crate::trace::BuildMode;
 
@@ -171,12 +173,29 @@ pub fn validate_mesh(
     for &k in &split.held_silhouettes {
         let sil = &inputs.silhouettes[k];
         let term = super::terms::silhouette_over(inputs, &surface, mesh, &edges, settings, &[k])?;
-        let outline = outline_disagreement(mesh, sil, surface.scene())?;
+        let stride = outline_stride(mesh, sil, settings);
+        let outline = outline_disagreement(mesh, sil, surface.scene(), stride)?;
         let entry = views.entry(sil.view).or_default();
         entry.1 = entry.1.add(Sums::of(&term));
         entry.2 = Some(outline as f64);
     }
     Ok(Some(record(&views, settings)))
+}
+
+/// The pixel stride of view `sil`'s outline test: the camera pixels in the kept rays' spacing
+/// (`ray_spacing` of `mesh`'s diagonal over √[`STORED_DENSITY`]) at the object, so that the
+/// rays it traces follow the object, not the camera's pixel count; 1 where a pixel is coarser.
+fn outline_stride(mesh: &TriMesh, sil: &Silhouette, settings: &Settings) -> usize {
+    let Some((lo, hi)) = mesh.bbox() else {
+        return 1;
+    };
+    let spacing_mm = settings.ray_spacing * (hi - lo).norm() / STORED_DENSITY.sqrt();
+    let pixels = spacing_mm * pixels_per_unit(mesh, sil, 1.0);
+    if pixels.is_finite() {
+        (pixels.floor() as usize).max(1)
+    } else {
+        1
+    }
 }
 
 /// One held-out view's refraction and silhouette sums and its outline's disagreeing pixels.

@@ -901,11 +901,24 @@ fn the_outline_disagreement_counts_the_pixels_where_mesh_and_mask_differ() {
     let scene = Scene::new(&Device::new().unwrap(), &mesh, BuildMode::Static).unwrap();
     let own = own_mask(&scene, &cam, &pose);
     let w = cam.width as usize;
-    let count = |mask: &[u8]| {
+    let strided = |mask: &[u8], stride: usize| {
         let sil = Silhouette::from_mask(0, mask, &cam, pose).unwrap();
-        outline_disagreement(&mesh, &sil, &scene).unwrap()
+        outline_disagreement(&mesh, &sil, &scene, stride).unwrap()
     };
+    let count = |mask: &[u8]| strided(mask, 1);
     assert_eq!(count(&own), 0);
+    assert_eq!(strided(&own, 3), 0);
+    // The mask moved 3 pixels right: every third pixel of every third row, each counted 9
+    // times, estimates the exact count.
+    let moved: Vec<u8> = (0..own.len())
+        .map(|i| if i % w >= 3 { own[i - 3] } else { 0 })
+        .collect();
+    let (exact, estimate) = (count(&moved) as f64, strided(&moved, 3) as f64);
+    assert!(exact > 200.0, "{exact}");
+    assert!(
+        (estimate - exact).abs() < 0.15 * exact,
+        "{estimate} against {exact}"
+    );
     let (cx, cy) = (w / 2, cam.height as usize / 2);
     assert_eq!(
         own[cy * w + cx],
@@ -925,6 +938,11 @@ fn the_outline_disagreement_counts_the_pixels_where_mesh_and_mask_differ() {
         filled[(cy - 1 + d / 3) * w + cx - 1 + d % 3] = MASK_FILLED;
     }
     assert_eq!(count(&speck), 25);
+    assert_eq!(
+        strided(&speck, 3),
+        25,
+        "object pixels beyond the box count as they are"
+    );
     assert_eq!(count(&hole), 9);
     assert_eq!(count(&filled), 9);
 }
