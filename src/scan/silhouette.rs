@@ -187,7 +187,7 @@ impl Silhouette {
 
     /// This silhouette with its distances near the outline refined by the measured `coverage`
     /// of the outline's pixels (row-major, the camera's size; see [`super::outline::UNMEASURED`]).
-    pub fn with_coverage(mut self, coverage: Vec<u8>) -> Result<Self> {
+    pub fn with_coverage(self, coverage: Vec<u8>) -> Result<Self> {
         let width = self.camera.width as usize;
         if coverage.len() != width * self.camera.height as usize {
             bail!(
@@ -199,16 +199,17 @@ impl Silhouette {
             );
         }
         let coverage = self.window.crop(&coverage, width);
+        Ok(self.refined(coverage))
+    }
+
+    /// This silhouette with its distances refined by `coverage`, the window's part of the
+    /// coverage image.
+    fn refined(mut self, coverage: Vec<u8>) -> Self {
         let inside: Vec<bool> = self.sd.iter().map(|&d| d > 0.0).collect();
-        super::outline::refine(
-            &mut self.sd,
-            &inside,
-            &coverage,
-            self.window.w,
-            self.window.origin(),
-        );
+        let (w, origin) = (self.window.w, self.window.origin());
+        super::outline::refine(&mut self.sd, &inside, &coverage, w, origin);
         self.coverage = Some(coverage);
-        Ok(self)
+        self
     }
 
     /// This silhouette with the holes the decoder filled counted inside (the visual hull's
@@ -221,23 +222,15 @@ impl Silhouette {
         for &i in &self.filled {
             inside[i as usize] = 255;
         }
-        let mut filled = self.clone_without_images().with_inside(&inside)?;
-        if let Some(coverage) = &self.coverage {
-            let mut coverage = coverage.clone();
-            for &i in &self.filled {
-                coverage[i as usize] = 255;
-            }
-            let inside: Vec<bool> = filled.sd.iter().map(|&d| d > 0.0).collect();
-            super::outline::refine(
-                &mut filled.sd,
-                &inside,
-                &coverage,
-                filled.window.w,
-                filled.window.origin(),
-            );
-            filled.coverage = Some(coverage);
+        let filled = self.clone_without_images().with_inside(&inside)?;
+        let Some(coverage) = &self.coverage else {
+            return Ok(Cow::Owned(filled));
+        };
+        let mut coverage = coverage.clone();
+        for &i in &self.filled {
+            coverage[i as usize] = 255;
         }
-        Ok(Cow::Owned(filled))
+        Ok(Cow::Owned(filled.refined(coverage)))
     }
 
     /// This silhouette's view, camera, pose and window, without its images.
