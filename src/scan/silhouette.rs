@@ -351,14 +351,15 @@ mod tests {
             cy: 600.0,
             dist: [0.0; 5],
         };
-        // An L-shaped object with a filled hole, off the image's centre.
+        // An L-shaped object with a filled hole and a round knob, off the image's centre.
         let mask: Vec<u8> = (0..w * h)
             .map(|i| {
                 let (x, y) = (i % w, i / w);
                 let body = (900..1100).contains(&x) && (300..700).contains(&y);
                 let foot = (1000..1250).contains(&x) && (600..700).contains(&y);
                 let hole = (950..970).contains(&x) && (400..420).contains(&y);
-                match (body || foot, hole) {
+                let knob = (x as f64 - 1180.3).hypot(y as f64 - 420.7) < 60.4;
+                match (body || foot || knob, hole) {
                     (true, true) => MASK_FILLED,
                     (true, false) => 255,
                     _ => 0,
@@ -388,11 +389,13 @@ mod tests {
                 }
             })
             .collect();
-        // Coverage measured on the outline's pixels (object side 200, background side 60).
+        // Coverage measured on the outline's pixels, uneven from pixel to pixel, so that the
+        // refined contour's crossings fall at positions whose rounding depends on the frame
+        // they are reckoned in.
         let coverage: Vec<u8> = (0..w * h)
             .map(|i| match (whole[i] > 0.0, whole[i].abs() < 1.0) {
-                (true, true) => 200,
-                (false, true) => 60,
+                (true, true) => 160 + (i * 37 % 90) as u8,
+                (false, true) => 10 + (i * 53 % 110) as u8,
                 (true, false) => 255,
                 (false, false) => 0,
             })
@@ -401,8 +404,8 @@ mod tests {
         super::super::outline::refine(&mut whole, &inside, &coverage, w, [0, 0]);
         let sil = sil.with_coverage(coverage).unwrap();
         let (mut inside_window, mut beyond) = (0, 0);
-        for y in (0..h).step_by(3) {
-            for x in (0..w).step_by(3) {
+        for y in 0..h {
+            for x in 0..w {
                 let (got, want) = (sil.sd_px(x as f64, y as f64), whole[y * w + x] as f64);
                 assert_eq!(sil.is_object_px(x, y), is_object(mask[y * w + x]));
                 if sil.window.index(x, y).is_some() {

@@ -355,16 +355,16 @@ fn trace_in_bands(
 ) -> Result<(Vec<Sample>, Option<Light>)> {
     let pixels = v.camera.width as usize * v.camera.height as usize;
     let mut samples = Vec::with_capacity(pixels * spp as usize);
-    let mut light = physical.map(|_| Light::empty(pixels));
+    let mut physical = physical.map(|surface| (surface, Light::empty(pixels)));
     for rows in render::row_bands(v.camera, spp, band_samples) {
         let rays = camera_rays(v, spp, rows);
         let band = trace_view(v, &rays)?;
-        if let (Some(surface), Some(light)) = (physical, light.as_mut()) {
-            add_physical_light(v, surface, (&rays, &band), spp, light)?;
+        if let Some((surface, light)) = physical.as_mut() {
+            add_physical_light(v, *surface, (&rays, &band), spp, light)?;
         }
         samples.extend(band);
     }
-    Ok((samples, light))
+    Ok((samples, physical.map(|(_, light)| light)))
 }
 
 /// The noise seed of view `k`'s captures: the scan's seed scattered, so scans with seeds s and
