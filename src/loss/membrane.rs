@@ -35,7 +35,7 @@ pub fn add_membrane(
     let mut chunks: Vec<Contributions> = edges
         .par_chunks(EDGE_CHUNK)
         .map(|chunk| {
-            let mut c = Contributions::default();
+            let mut c = Contributions::with_capacity(2 * chunk.len(), 0);
             for e in chunk {
                 let [a, b] = e.verts;
                 if !(selected[a as usize] || selected[b as usize]) {

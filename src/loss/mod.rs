@@ -128,6 +128,16 @@ pub struct Contributions {
 }
 
 impl Contributions {
+    /// Empty, with room for `grad` position and `ngrad` normal entries, so that pushing as many
+    /// does not reallocate and copy them.
+    pub fn with_capacity(grad: usize, ngrad: usize) -> Self {
+        Self {
+            grad: Vec::with_capacity(grad),
+            ngrad: Vec::with_capacity(ngrad),
+            ..Self::default()
+        }
+    }
+
     /// Adds a pixel of weight `weight` (its loss and gradient already carry it).
     pub fn push_pixel(&mut self, g: &PixelGradient, weight: f64) {
         self.loss += g.loss;

@@ -601,7 +601,14 @@ pub fn add_view(
             let rays: Vec<Ray> = dirs.iter().map(|d| Ray::new(view.eye, *d)).collect();
             let mut trails = vec![Trail::default(); rays.len()];
             let paths = trace_chunk(surface, &rays, &settings, Some(&mut trails))?;
-            let mut c = Contributions::default();
+            // Three vertices per refraction, each with a normal entry for vertex normals.
+            let entries = 3 * s.max_refractions as usize * rays.len();
+            let normal_entries = if mesh.vertex_normals.is_some() {
+                entries
+            } else {
+                0
+            };
+            let mut c = Contributions::with_capacity(entries, normal_entries);
             let mut g = PixelGradient::default();
             let mut footprint = Vec::with_capacity(offsets.len());
             for (k, px) in chunk.iter().enumerate() {

@@ -285,7 +285,7 @@ pub fn add_view(
     let chunks: Vec<Contributions> = contour
         .par_chunks(1024)
         .map(|chunk| {
-            let mut c = Contributions::default();
+            let mut c = Contributions::with_capacity(2 * chunk.len(), 0);
             for e in chunk {
                 match edge_gradient(mesh, sil, e, s.form, k) {
                     Some((loss, g)) => {

@@ -53,7 +53,7 @@ pub fn add_smoothness(
     let chunks: Vec<Contributions> = edges
         .par_chunks(4096)
         .map(|chunk| {
-            let mut c = Contributions::default();
+            let mut c = Contributions::with_capacity(6 * chunk.len(), 0);
             for e in chunk {
                 let [f, g] = e.faces;
                 match pair_gradient(mesh, &crosses, [f as usize, g as usize], kind) {

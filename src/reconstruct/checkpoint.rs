@@ -63,6 +63,11 @@ pub struct StageReport {
 pub struct CostProfile {
     /// Remeshing to the stage's edge length.
     pub remesh: f64,
+    /// Every term of every iteration, wall time. The terms run at the same time, so their own
+    /// times below overlap and add up to more (absent in reports written before they ran
+    /// together).
+    #[serde(default)]
+    pub terms: f64,
     /// The refraction term: tracing the sampled pixels' paths and their gradients.
     pub refraction: f64,
     /// The silhouette term: contour edges, their probe rays and gradients.
@@ -86,6 +91,7 @@ impl CostProfile {
         let mut rays = 0.0;
         for (p, used) in profiles {
             t.remesh += p.remesh;
+            t.terms += p.terms;
             t.refraction += p.refraction;
             t.silhouette += p.silhouette;
             t.regularisers += p.regularisers;

@@ -180,25 +180,20 @@ pub(super) fn run_stage(
     let timed = |t: &mut f64, start: Instant| *t += start.elapsed().as_secs_f64();
     for it in 0..settings.iterations {
         let mut rng = ChaCha8Rng::seed_from_u64(iteration_seed(settings.seed, s, it));
+        let draws = Draws::new(split, settings, &mut rng);
         let t = Instant::now();
-        let refraction = refraction_term((inputs, ior), split, &surface, mesh, settings, &mut rng)?;
-        timed(&mut profile.refraction, t);
-        let t = Instant::now();
-        let silhouette =
-            silhouette_term(inputs, split, &surface, mesh, &edges, settings, &mut rng)?;
-        timed(&mut profile.silhouette, t);
-        let t = Instant::now();
-        coverage.record(&refraction.grad);
-        let (membrane, share) = membrane_term(mesh, &edges, &coverage, settings, edge_mm);
+        let (terms, share, times) = iteration_terms(
+            (inputs, ior),
+            (&surface, mesh, &edges),
+            (settings, edge_mm),
+            &draws,
+            &mut coverage,
+        )?;
+        timed(&mut profile.terms, t);
+        profile.refraction += times.refraction;
+        profile.silhouette += times.silhouette;
+        profile.regularisers += times.regularisers;
         membrane_share = membrane_share.max(share);
-        let smoothness = smoothness_term(mesh, &edges, settings);
-        timed(&mut profile.regularisers, t);
-        let terms = Terms {
-            refraction,
-            silhouette,
-            smoothness,
-            membrane,
-        };
         used += terms.refraction.used;
         drops.add(&terms.refraction.drops);
         contour += terms.silhouette.used;

@@ -18,6 +18,7 @@ use nalgebra::{Point3, Vector3};
 use rand::seq::index::sample;
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
+use std::time::Instant;
 
 type V3 = Vector3<f64>;
 
@@ -101,23 +102,100 @@ pub(super) fn iteration_seed(seed: u64, s: usize, it: usize) -> u64 {
     scatter_seed(seed) ^ ((s as u64) << 40) ^ it as u64
 }
 
-/// The refraction term at refractive index `ior` over `refraction_views` random views of those
-/// `split` fits, each a sample of its pixels from a random offset ([`refraction_over`]).
-pub(super) fn refraction_term(
+/// The views an iteration's terms look at, drawn from the iteration's generator: first the
+/// refraction term's `refraction_views` random views of those `split` fits, each with a random
+/// sample offset ([`Sample::Offset`]), then the silhouette term's `silhouette_views` (none at
+/// weight 0).
+pub(super) struct Draws {
+    pub(super) refraction: Vec<(usize, Sample)>,
+    pub(super) silhouettes: Vec<usize>,
+}
+
+impl Draws {
+    pub(super) fn new(split: &Split, settings: &Settings, rng: &mut ChaCha8Rng) -> Self {
+        let fit = &split.fit_targets;
+        let k = settings.refraction_views.min(fit.len());
+        let refraction = sample(rng, fit.len(), k)
+            .into_iter()
+            .map(|v| (fit[v], Sample::Offset(rng.random::<f64>())))
+            .collect();
+        let fit = &split.fit_silhouettes;
+        let k = settings.silhouette_views.min(fit.len());
+        let silhouettes = if settings.weight_silhouette > 0.0 {
+            sample(rng, fit.len(), k)
+                .into_iter()
+                .map(|v| fit[v])
+                .collect()
+        } else {
+            Vec::new()
+        };
+        Self {
+            refraction,
+            silhouettes,
+        }
+    }
+}
+
+/// Each term's own wall time in one iteration, s; they ran at the same time, so they overlap.
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct TermTimes {
+    pub(super) refraction: f64,
+    pub(super) silhouette: f64,
+    /// The smoothness and the membrane terms.
+    pub(super) regularisers: f64,
+}
+
+/// Every term of an iteration over the views `draws` chose, the refraction term at refractive
+/// index `ior`, evaluated at the same time: the refraction term and after it the membrane term
+/// (which acts where `coverage`, recording the refraction gradient, says no ray has been), beside
+/// the silhouette term, beside the smoothness term. Each runs on the threads the others leave
+/// idle and is the same bits as alone. Returns the terms, the share of the vertices the membrane
+/// term acted on, and each term's own time.
+pub(super) fn iteration_terms(
     (inputs, ior): (&Inputs, f64),
-    split: &Split,
-    surface: &MeshSurface,
-    mesh: &TriMesh,
-    settings: &Settings,
-    rng: &mut ChaCha8Rng,
-) -> Result<TermValue> {
-    let fit = &split.fit_targets;
-    let k = settings.refraction_views.min(fit.len());
-    let views: Vec<(usize, Sample)> = sample(rng, fit.len(), k)
-        .into_iter()
-        .map(|v| (fit[v], Sample::Offset(rng.random::<f64>())))
-        .collect();
-    refraction_over((inputs, ior), surface, mesh, settings, &views)
+    (surface, mesh, edges): (&MeshSurface, &TriMesh, &[InteriorEdge]),
+    (settings, edge_mm): (&Settings, f64),
+    draws: &Draws,
+    coverage: &mut Coverage,
+) -> Result<(Terms, f64, TermTimes)> {
+    let since = |t: Instant| t.elapsed().as_secs_f64();
+    let refraction_then_membrane = || -> Result<_> {
+        let t = Instant::now();
+        let refraction =
+            refraction_over((inputs, ior), surface, mesh, settings, &draws.refraction)?;
+        let (t_refraction, t) = (since(t), Instant::now());
+        coverage.record(&refraction.grad);
+        let membrane = membrane_term(mesh, edges, coverage, settings, edge_mm);
+        Ok((refraction, membrane, t_refraction, since(t)))
+    };
+    let silhouette = || -> Result<_> {
+        let t = Instant::now();
+        let term = silhouette_over(inputs, surface, mesh, edges, settings, &draws.silhouettes)?;
+        Ok((term, since(t)))
+    };
+    let smoothness = || {
+        let t = Instant::now();
+        let term = smoothness_term(mesh, edges, settings);
+        (term, since(t))
+    };
+    let (first, (silhouette, (smoothness, t_smoothness))) =
+        rayon::join(refraction_then_membrane, || {
+            rayon::join(silhouette, smoothness)
+        });
+    let (refraction, (membrane, share), t_refraction, t_membrane) = first?;
+    let (silhouette, t_silhouette) = silhouette?;
+    let times = TermTimes {
+        refraction: t_refraction,
+        silhouette: t_silhouette,
+        regularisers: t_smoothness + t_membrane,
+    };
+    let terms = Terms {
+        refraction,
+        silhouette,
+        smoothness,
+        membrane,
+    };
+    Ok((terms, share, times))
 }
 
 /// Which of a view's kept pixels a term traces.
@@ -182,30 +260,6 @@ pub(super) fn add_refraction(
         }
     }
     Ok(())
-}
-
-/// The silhouette term over `silhouette_views` random views of those `split` fits (nothing at
-/// weight 0).
-pub(super) fn silhouette_term(
-    inputs: &Inputs,
-    split: &Split,
-    surface: &MeshSurface,
-    mesh: &TriMesh,
-    edges: &[InteriorEdge],
-    settings: &Settings,
-    rng: &mut ChaCha8Rng,
-) -> Result<TermValue> {
-    let fit = &split.fit_silhouettes;
-    let k = settings.silhouette_views.min(fit.len());
-    let views: Vec<usize> = if settings.weight_silhouette > 0.0 {
-        sample(rng, fit.len(), k)
-            .into_iter()
-            .map(|v| fit[v])
-            .collect()
-    } else {
-        Vec::new()
-    };
-    silhouette_over(inputs, surface, mesh, edges, settings, &views)
 }
 
 /// The silhouette term over the silhouettes `views`.

@@ -115,6 +115,27 @@ fn kill_after_first_stage(args: &[String], out: &Path) {
     );
 }
 
+/// The terms of an iteration run at the same time, each on the threads the others leave idle:
+/// however many threads there are, a run is the same bits.
+#[test]
+fn a_run_on_one_thread_is_the_run_on_three_bit_for_bit() {
+    let dir = tempfile::tempdir().unwrap();
+    let (scan, config, whole) = uninterrupted_run(dir.path());
+    for threads in ["1", "3"] {
+        let out = dir.path().join(format!("threads{threads}"));
+        let o = crate::common::run(
+            glasscan_cmd()
+                .args(reconstruct_args(&scan, &config, &out))
+                .env("RAYON_NUM_THREADS", threads),
+        );
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        assert!(
+            whole == std::fs::read(out.join("result.ply")).unwrap(),
+            "on {threads} threads the result differs from the default pool's"
+        );
+    }
+}
+
 #[test]
 fn a_killed_run_resumes_to_the_same_result() {
     let dir = tempfile::tempdir().unwrap();
@@ -159,26 +180,21 @@ fn a_killed_run_resumes_to_the_same_result() {
         .unwrap();
     assert_eq!(report["result_stage"], best + 1, "{totals:?}");
     // Each stage's cost profile accounts for its time: every part measured, none beyond the
-    // stage's wall time, and the refraction term traced its rays at a positive rate.
+    // stage's wall time, each term's own time within the terms' (they run at the same time),
+    // and the refraction term traced its rays at a positive rate.
     for s in report["stages"].as_array().unwrap() {
         let p = &s["profile"];
-        let parts = [
-            "remesh",
-            "refraction",
-            "silhouette",
-            "regularisers",
-            "step",
-            "refit",
-            "validation",
-        ]
-        .map(|k| p[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {s}")));
+        let time = |k: &str| p[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {s}"));
+        let parts = ["remesh", "terms", "step", "refit", "validation"].map(time);
+        let terms = ["refraction", "silhouette", "regularisers"].map(time);
         let seconds = s["seconds"].as_f64().unwrap();
-        assert!(parts.iter().all(|&t| t >= 0.0), "{p}");
-        assert!(parts[1] > 0.0 && parts[6] > 0.0, "{p}");
+        assert!(parts.iter().chain(&terms).all(|&t| t >= 0.0), "{p}");
+        assert!(terms[0] > 0.0 && parts[4] > 0.0, "{p}");
         assert!(
             parts.iter().sum::<f64>() <= seconds * 1.0001,
             "{p} over {seconds} s"
         );
+        assert!(terms.iter().all(|&t| t <= parts[1] * 1.0001), "{p}");
         assert!(p["refraction_rays_per_s"].as_f64().unwrap() > 0.0, "{p}");
     }
     // The result is that stage's mesh, with its confidence as a vertex property.
