@@ -137,7 +137,6 @@ impl Draws {
 }
 
 /// Each term's own wall time in one iteration, s; they ran at the same time, so they overlap.
-#[derive(Clone, Copy, Debug, Default)]
 pub(super) struct TermTimes {
     pub(super) refraction: f64,
     pub(super) silhouette: f64,
@@ -158,32 +157,26 @@ pub(super) fn iteration_terms(
     draws: &Draws,
     coverage: &mut Coverage,
 ) -> Result<(Terms, f64, TermTimes)> {
-    let since = |t: Instant| t.elapsed().as_secs_f64();
     let refraction_then_membrane = || -> Result<_> {
-        let t = Instant::now();
-        let refraction =
-            refraction_over((inputs, ior), surface, mesh, settings, &draws.refraction)?;
-        let (t_refraction, t) = (since(t), Instant::now());
-        coverage.record(&refraction.grad);
-        let membrane = membrane_term(mesh, edges, coverage, settings, edge_mm);
-        Ok((refraction, membrane, t_refraction, since(t)))
+        let (refraction, t_refraction) =
+            timed(|| refraction_over((inputs, ior), surface, mesh, settings, &draws.refraction));
+        let refraction = refraction?;
+        let (membrane, t_membrane) = timed(|| {
+            coverage.record(&refraction.grad);
+            membrane_term(mesh, edges, coverage, settings, edge_mm)
+        });
+        Ok((refraction, membrane, t_refraction, t_membrane))
     };
-    let silhouette = || -> Result<_> {
-        let t = Instant::now();
-        let term = silhouette_over(inputs, surface, mesh, edges, settings, &draws.silhouettes)?;
-        Ok((term, since(t)))
-    };
-    let smoothness = || {
-        let t = Instant::now();
-        let term = smoothness_term(mesh, edges, settings);
-        (term, since(t))
-    };
+    let silhouette =
+        || timed(|| silhouette_over(inputs, surface, mesh, edges, settings, &draws.silhouettes));
+    let smoothness = || timed(|| smoothness_term(mesh, edges, settings));
     let (first, (silhouette, (smoothness, t_smoothness))) =
         rayon::join(refraction_then_membrane, || {
             rayon::join(silhouette, smoothness)
         });
     let (refraction, (membrane, share), t_refraction, t_membrane) = first?;
-    let (silhouette, t_silhouette) = silhouette?;
+    let (silhouette, t_silhouette) = silhouette;
+    let silhouette = silhouette?;
     let times = TermTimes {
         refraction: t_refraction,
         silhouette: t_silhouette,
@@ -196,6 +189,13 @@ pub(super) fn iteration_terms(
         membrane,
     };
     Ok((terms, share, times))
+}
+
+/// `f`'s value and its wall time, s.
+fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
+    let t = Instant::now();
+    let value = f();
+    (value, t.elapsed().as_secs_f64())
 }
 
 /// Which of a view's kept pixels a term traces.
