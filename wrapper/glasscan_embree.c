@@ -284,6 +284,40 @@ int gs_intersect(const gs_scene* s, const gs_ray* rays, gs_hit* hits, size_t n, 
   return check(s->device, "ray query");
 }
 
+/* Whether ray r meets the surface anywhere in [tnear, tfar]: Embree stops at the first
+ * triangle it finds, and sets tfar to -inf when it found one. */
+static int occluded1(const gs_scene* s, const gs_ray* r) {
+  struct RTCRay ray;
+  ray.org_x = r->org[0];
+  ray.org_y = r->org[1];
+  ray.org_z = r->org[2];
+  ray.tnear = r->tnear;
+  ray.dir_x = r->dir[0];
+  ray.dir_y = r->dir[1];
+  ray.dir_z = r->dir[2];
+  ray.time = 0.0f;
+  ray.tfar = r->tfar;
+  ray.mask = 0xFFFFFFFFu;
+  ray.id = 0;
+  ray.flags = 0;
+#if GS_EMBREE4
+  struct RTCOccludedArguments args;
+  rtcInitOccludedArguments(&args);
+  rtcOccluded1(s->scene, &ray, &args);
+#else
+  struct RTCIntersectContext ctx;
+  rtcInitIntersectContext(&ctx);
+  rtcOccluded1(s->scene, &ctx, &ray);
+#endif
+  return ray.tfar == -INFINITY;
+}
+
+int gs_occluded(const gs_scene* s, const gs_ray* rays, uint8_t* hit, size_t n) {
+  gs_error[0] = '\0';
+  for (size_t i = 0; i < n; i++) hit[i] = (uint8_t)occluded1(s, &rays[i]);
+  return check(s->device, "occlusion query");
+}
+
 /* ---- closest point queries ---- */
 
 typedef struct closest_ctx {

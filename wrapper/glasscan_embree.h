@@ -85,6 +85,13 @@ void gs_scene_free(gs_scene* scene);
 int gs_intersect(const gs_scene* scene, const gs_ray* rays, gs_hit* hits, size_t n, int coherent);
 
 /**
+ * Whether each of `n` rays meets the surface at all within its [tnear, tfar] (hit[i] = 1) or
+ * not (0): the same answer as gs_intersect finding a hit, found sooner since any triangle ends
+ * the search. Thread-safe (call from many threads on disjoint slices). Returns 0 on success.
+ */
+int gs_occluded(const gs_scene* scene, const gs_ray* rays, uint8_t* hit, size_t n);
+
+/**
  * Closest surface point to each of `n` query points (3 doubles each). `verts` (3 doubles per
  * vertex) and `tris` must describe the same mesh as the scene, in double precision: Embree's BVH
  * prunes the search, the distances themselves are exact double-precision point-triangle distances.

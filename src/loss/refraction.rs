@@ -9,6 +9,8 @@
 //! modelled path cannot be compared (no hit, TIR, wrong number of refractions, missing the
 //! monitor, a derivative that is unbounded or not finite) are dropped and counted by reason.
 
+use std::ops::Range;
+
 use arrayvec::ArrayVec;
 use nalgebra::{Point3, Vector2, Vector3};
 use rayon::prelude::*;
@@ -184,6 +186,7 @@ impl ViewTargets {
 }
 
 /// The path of one pixel recomputed in f64, with what its derivative needs.
+#[derive(Clone, Debug)]
 struct Interface {
     tri: [Point3<f64>; 3],
     verts: [u32; 3],
@@ -228,6 +231,9 @@ pub struct PixelGradient {
     pub grad: Vec<(u32, V3)>,
     pub ngrad: Vec<(u32, V3)>,
     pub ior: f64,
+    /// The interfaces of the footprint's paths, kept between pixels so that the hot loop
+    /// neither allocates nor moves them.
+    interfaces: Vec<Interface>,
 }
 
 /// Everything the per-pixel computation reads about the current mesh.
@@ -267,12 +273,29 @@ pub fn footprint_gradient_into(
     rays: &[FootprintRay],
     out: &mut PixelGradient,
 ) -> Result<(), DropReason> {
+    let mut interfaces = std::mem::take(&mut out.interfaces);
+    interfaces.clear();
+    let r = footprint_gradient(mesh, s, view, px, rays, &mut interfaces, out);
+    out.interfaces = interfaces;
+    r
+}
+
+/// [`footprint_gradient_into`] with the paths' interfaces recorded into `interfaces`.
+fn footprint_gradient(
+    mesh: &MeshState,
+    s: &RefractionSettings,
+    view: &ViewTargets,
+    px: &PixelTarget,
+    rays: &[FootprintRay],
+    interfaces: &mut Vec<Interface>,
+    out: &mut PixelGradient,
+) -> Result<(), DropReason> {
     let mut paths: ArrayVec<(Forward, Exit), MAX_FOOTPRINT_RAYS> = ArrayVec::new();
     let mut first_drop = None;
     let min_cos = px.min_cos(s);
     for (dir, prims) in rays.iter().take(MAX_FOOTPRINT_RAYS) {
         let path = (*prims).and_then(|p| {
-            let f = forward(mesh, s, min_cos, &view.eye, dir, p)?;
+            let f = forward(mesh, s, min_cos, &view.eye, dir, p, interfaces)?;
             let e = exit_residual(s, view, &px.target, &f.o, &f.d)?;
             Ok((f, e))
         });
@@ -299,7 +322,7 @@ pub fn footprint_gradient_into(
             gp += bp;
             gd += bd;
         }
-        for it in f.chain.iter().rev() {
+        for it in interfaces[f.chain.clone()].iter().rev() {
             (gp, gd) = interface_adjoint(mesh, it, &gp, &gd, out);
         }
     }
@@ -383,15 +406,16 @@ fn screen_adjoint(view: &ViewTargets, sdist: f64, dn: f64, d: &V3, gq: &V3) -> (
     (gp, gd)
 }
 
-/// A ray's path recomputed forward: its interfaces and the exit ray (origin, unit direction).
+/// A ray's path recomputed forward: where its interfaces are in the footprint's list, and the
+/// exit ray (origin, unit direction).
 struct Forward {
-    chain: ArrayVec<Interface, MAX_TRAIL>,
+    chain: Range<usize>,
     o: Point3<f64>,
     d: V3,
 }
 
-/// The ray from `eye` along `dir` through the triangles `prims`, dropped where it meets one with
-/// cos θi or cos θt below `min_cos`.
+/// The ray from `eye` along `dir` through the triangles `prims`, its interfaces appended to
+/// `interfaces`; dropped where it meets one with cos θi or cos θt below `min_cos`.
 fn forward(
     mesh: &MeshState,
     s: &RefractionSettings,
@@ -399,18 +423,23 @@ fn forward(
     eye: &Point3<f64>,
     dir: &V3,
     prims: &[u32],
+    interfaces: &mut Vec<Interface>,
 ) -> Result<Forward, DropReason> {
     if prims.len() > MAX_TRAIL {
         return Err(DropReason::RefractionCount);
     }
-    let mut chain = ArrayVec::new();
+    let start = interfaces.len();
     let (mut o, mut d) = (*eye, *dir);
     for &prim in prims {
         let it = refract_at(mesh, s, min_cos, &o, &d, prim)?;
         (o, d) = (it.hit.point, it.snell.out / it.out_norm);
-        chain.push(it);
+        interfaces.push(it);
     }
-    Ok(Forward { chain, o, d })
+    Ok(Forward {
+        chain: start..interfaces.len(),
+        o,
+        d,
+    })
 }
 
 /// Forward through one interface: the ray (o, d) meets triangle `prim`'s plane and refracts

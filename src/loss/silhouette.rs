@@ -119,12 +119,12 @@ pub fn contour_edges(
         })
         .collect();
     let rays: Vec<Ray> = candidates.iter().flat_map(|(_, r)| *r).collect();
-    let hits = scene.intersect(&rays, false)?;
+    let hits = scene.hits_any(&rays)?;
     Ok(candidates
         .iter()
         .zip(hits.chunks_exact(2))
         .filter_map(|((e, _), h)| {
-            let side = h[0].is_some() as i32 - h[1].is_some() as i32;
+            let side = h[0] as i32 - h[1] as i32;
             (side != 0).then_some(ContourEdge {
                 verts: e.verts,
                 side: side as f64,
@@ -180,9 +180,9 @@ pub fn outline_disagreement(
             Ray::new(eye, to_world * d.unwrap_or_else(|| -V3::z()))
         })
         .collect();
-    let hits = scene.intersect(&rays, false)?;
+    let hits = scene.hits_any(&rays)?;
     let disagree = (pixels.iter().zip(&hits))
-        .filter(|(&(x, y), hit)| sil.is_object_px(x, y) != hit.is_some())
+        .filter(|(&(x, y), &hit)| sil.is_object_px(x, y) != hit)
         .count();
     let object_in_box = (y0..y1)
         .flat_map(|y| (x0..x1).map(move |x| (x, y)))

@@ -347,6 +347,30 @@ impl Scene {
         Ok(out)
     }
 
+    /// Whether each of `rays` meets the surface at all (the same answer as [`Self::intersect`]
+    /// finding a hit, sooner: any triangle ends a ray's search), in parallel on the current
+    /// rayon pool.
+    pub fn hits_any(&self, rays: &[Ray]) -> Result<Vec<bool>, TraceError> {
+        let mut out = vec![false; rays.len()];
+        rays.par_chunks(CHUNK)
+            .zip(out.par_chunks_mut(CHUNK))
+            .try_for_each(|(r, o)| {
+                let raw: Vec<ffi::gs_ray> = r.iter().map(Ray::raw).collect();
+                let mut hit = vec![0u8; r.len()];
+                // SAFETY: both buffers hold r.len() elements; the scene is committed.
+                let status =
+                    unsafe { ffi::gs_occluded(self.raw, raw.as_ptr(), hit.as_mut_ptr(), r.len()) };
+                if status != 0 {
+                    return Err(last_error("Embree: occlusion query failed"));
+                }
+                for (o, h) in o.iter_mut().zip(&hit) {
+                    *o = *h != 0;
+                }
+                Ok(())
+            })?;
+        Ok(out)
+    }
+
     /// Exact closest surface points to `points` (mm), in parallel on the current rayon pool.
     pub fn closest_points(&self, points: &[Point3<f64>]) -> Result<Vec<ClosestPoint>, TraceError> {
         self.closest_points_near(points, f64::INFINITY)

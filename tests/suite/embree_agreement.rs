@@ -129,6 +129,38 @@ fn embree_hits_agree_with_brute_force_on_100k_rays() {
 }
 
 #[test]
+fn any_hit_queries_answer_as_closest_hits_do() {
+    let mesh = test_sphere(9);
+    let device = Device::new().unwrap();
+    // Rays from outside (hitting and missing, some grazing the rim) and from inside (every one
+    // hits), and rays that stop short of the surface (tfar).
+    let mut rays = random_rays(20_000, 13);
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    rays.extend((0..5_000).map(|_| {
+        let d = Vector3::from_fn(|_, _| rng.random::<f64>() - 0.5).normalize();
+        Ray::new(Point3::from(d * 0.3), d)
+    }));
+    rays.extend(rays[..5_000].to_vec().into_iter().map(|mut r| {
+        r.tfar = 2.0;
+        r
+    }));
+    for mode in [BuildMode::Static, BuildMode::Rebuild, BuildMode::Refit] {
+        let scene = Scene::new(&device, &mesh, mode).unwrap();
+        let any = scene.hits_any(&rays).unwrap();
+        let closest = scene.intersect(&rays, false).unwrap();
+        let (hits, misses) = (
+            any.iter().filter(|&&h| h).count(),
+            any.iter().filter(|&&h| !h).count(),
+        );
+        assert!(hits > 5_000 && misses > 5_000, "{hits} hits, {misses} misses");
+        let differ: Vec<usize> = (0..rays.len())
+            .filter(|&i| any[i] != closest[i].is_some())
+            .collect();
+        assert!(differ.is_empty(), "{mode:?}: rays {differ:?} differ");
+    }
+}
+
+#[test]
 fn refit_and_rebuild_follow_moved_vertices() {
     let mesh = test_sphere(3);
     let moved = test_sphere(4);
