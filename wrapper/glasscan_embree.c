@@ -312,9 +312,47 @@ static int occluded1(const gs_scene* s, const gs_ray* r) {
   return ray.tfar == -INFINITY;
 }
 
-int gs_occluded(const gs_scene* s, const gs_ray* rays, uint8_t* hit, size_t n) {
+/* As occluded1 for up to 8 rays (count) at once, as a packet. */
+static void occluded8(const gs_scene* s, const gs_ray* r, uint8_t* hit, size_t count) {
+  struct RTCRay8 ray;
+  int valid[8];
+  for (size_t i = 0; i < 8; i++) {
+    const gs_ray* ri = &r[i < count ? i : 0];
+    valid[i] = i < count ? -1 : 0;
+    ray.org_x[i] = ri->org[0];
+    ray.org_y[i] = ri->org[1];
+    ray.org_z[i] = ri->org[2];
+    ray.tnear[i] = ri->tnear;
+    ray.dir_x[i] = ri->dir[0];
+    ray.dir_y[i] = ri->dir[1];
+    ray.dir_z[i] = ri->dir[2];
+    ray.time[i] = 0.0f;
+    ray.tfar[i] = ri->tfar;
+    ray.mask[i] = 0xFFFFFFFFu;
+    ray.id[i] = (unsigned)i;
+    ray.flags[i] = 0;
+  }
+#if GS_EMBREE4
+  struct RTCOccludedArguments args;
+  rtcInitOccludedArguments(&args);
+  args.flags = RTC_RAY_QUERY_FLAG_COHERENT;
+  rtcOccluded8(valid, s->scene, &ray, &args);
+#else
+  struct RTCIntersectContext ctx;
+  rtcInitIntersectContext(&ctx);
+  ctx.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
+  rtcOccluded8(valid, s->scene, &ctx, &ray);
+#endif
+  for (size_t i = 0; i < count; i++) hit[i] = (uint8_t)(ray.tfar[i] == -INFINITY);
+}
+
+int gs_occluded(const gs_scene* s, const gs_ray* rays, uint8_t* hit, size_t n, int coherent) {
   gs_error[0] = '\0';
-  for (size_t i = 0; i < n; i++) hit[i] = (uint8_t)occluded1(s, &rays[i]);
+  if (coherent) {
+    for (size_t i = 0; i < n; i += 8) occluded8(s, rays + i, hit + i, n - i < 8 ? n - i : 8);
+  } else {
+    for (size_t i = 0; i < n; i++) hit[i] = (uint8_t)occluded1(s, &rays[i]);
+  }
   return check(s->device, "occlusion query");
 }
 

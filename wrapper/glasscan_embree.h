@@ -87,9 +87,11 @@ int gs_intersect(const gs_scene* scene, const gs_ray* rays, gs_hit* hits, size_t
 /**
  * Whether each of `n` rays meets the surface at all within its [tnear, tfar] (hit[i] = 1) or
  * not (0): the same answer as gs_intersect finding a hit, found sooner since any triangle ends
- * the search. Thread-safe (call from many threads on disjoint slices). Returns 0 on success.
+ * the search. With `coherent` != 0 in packets of 8 (rays in groups that run close together),
+ * otherwise one by one. Thread-safe (call from many threads on disjoint slices). Returns 0 on
+ * success.
  */
-int gs_occluded(const gs_scene* scene, const gs_ray* rays, uint8_t* hit, size_t n);
+int gs_occluded(const gs_scene* scene, const gs_ray* rays, uint8_t* hit, size_t n, int coherent);
 
 /**
  * Closest surface point to each of `n` query points (3 doubles each). `verts` (3 doubles per

@@ -119,7 +119,8 @@ pub fn contour_edges(
         })
         .collect();
     let rays: Vec<Ray> = candidates.iter().flat_map(|(_, r)| *r).collect();
-    let hits = scene.hits_any(&rays)?;
+    // Each edge's two probes run side by side: packets of four edges.
+    let hits = scene.hits_any(&rays, true)?;
     Ok(candidates
         .iter()
         .zip(hits.chunks_exact(2))
@@ -180,7 +181,7 @@ pub fn outline_disagreement(
             Ray::new(eye, to_world * d.unwrap_or_else(|| -V3::z()))
         })
         .collect();
-    let hits = scene.hits_any(&rays)?;
+    let hits = scene.hits_any(&rays, true)?;
     let disagree = (pixels.iter().zip(&hits))
         .filter(|(&(x, y), &hit)| sil.is_object_px(x, y) != hit)
         .count();

@@ -349,8 +349,9 @@ impl Scene {
 
     /// Whether each of `rays` meets the surface at all (the same answer as [`Self::intersect`]
     /// finding a hit, sooner: any triangle ends a ray's search), in parallel on the current
-    /// rayon pool.
-    pub fn hits_any(&self, rays: &[Ray]) -> Result<Vec<bool>, TraceError> {
+    /// rayon pool; `coherent`: the rays come in groups that run close together, worth tracing in
+    /// packets.
+    pub fn hits_any(&self, rays: &[Ray], coherent: bool) -> Result<Vec<bool>, TraceError> {
         let mut out = vec![false; rays.len()];
         rays.par_chunks(CHUNK)
             .zip(out.par_chunks_mut(CHUNK))
@@ -358,8 +359,15 @@ impl Scene {
                 let raw: Vec<ffi::gs_ray> = r.iter().map(Ray::raw).collect();
                 let mut hit = vec![0u8; r.len()];
                 // SAFETY: both buffers hold r.len() elements; the scene is committed.
-                let status =
-                    unsafe { ffi::gs_occluded(self.raw, raw.as_ptr(), hit.as_mut_ptr(), r.len()) };
+                let status = unsafe {
+                    ffi::gs_occluded(
+                        self.raw,
+                        raw.as_ptr(),
+                        hit.as_mut_ptr(),
+                        r.len(),
+                        coherent as i32,
+                    )
+                };
                 if status != 0 {
                     return Err(last_error("Embree: occlusion query failed"));
                 }

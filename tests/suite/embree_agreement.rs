@@ -146,17 +146,25 @@ fn any_hit_queries_answer_as_closest_hits_do() {
     }));
     for mode in [BuildMode::Static, BuildMode::Rebuild, BuildMode::Refit] {
         let scene = Scene::new(&device, &mesh, mode).unwrap();
-        let any = scene.hits_any(&rays).unwrap();
         let closest = scene.intersect(&rays, false).unwrap();
-        let (hits, misses) = (
-            any.iter().filter(|&&h| h).count(),
-            any.iter().filter(|&&h| !h).count(),
-        );
-        assert!(hits > 5_000 && misses > 5_000, "{hits} hits, {misses} misses");
-        let differ: Vec<usize> = (0..rays.len())
-            .filter(|&i| any[i] != closest[i].is_some())
-            .collect();
-        assert!(differ.is_empty(), "{mode:?}: rays {differ:?} differ");
+        for coherent in [false, true] {
+            let any = scene.hits_any(&rays, coherent).unwrap();
+            let (hits, misses) = (
+                any.iter().filter(|&&h| h).count(),
+                any.iter().filter(|&&h| !h).count(),
+            );
+            assert!(
+                hits > 5_000 && misses > 5_000,
+                "{hits} hits, {misses} misses"
+            );
+            let differ: Vec<usize> = (0..rays.len())
+                .filter(|&i| any[i] != closest[i].is_some())
+                .collect();
+            assert!(
+                differ.is_empty(),
+                "{mode:?}, coherent {coherent}: rays {differ:?} differ"
+            );
+        }
     }
 }
 
