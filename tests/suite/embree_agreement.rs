@@ -140,10 +140,11 @@ fn any_hit_queries_answer_as_closest_hits_do() {
         let d = Vector3::from_fn(|_, _| rng.random::<f64>() - 0.5).normalize();
         Ray::new(Point3::from(d * 0.3), d)
     }));
-    rays.extend(rays[..5_000].to_vec().into_iter().map(|mut r| {
-        r.tfar = 2.0;
-        r
-    }));
+    let short: Vec<Ray> = rays[..5_000]
+        .iter()
+        .map(|r| Ray { tfar: 2.0, ..*r })
+        .collect();
+    rays.extend(short);
     for mode in [BuildMode::Static, BuildMode::Rebuild, BuildMode::Refit] {
         let scene = Scene::new(&device, &mesh, mode).unwrap();
         let closest = scene.intersect(&rays, false).unwrap();
