@@ -207,20 +207,46 @@ static void fill_hit(gs_hit* h, float t, float u, float v, unsigned geom, unsign
   }
 }
 
+/* Embree's ray from ours: every mask bit, time 0. */
+static void fill_ray1(struct RTCRay* ray, const gs_ray* r) {
+  ray->org_x = r->org[0];
+  ray->org_y = r->org[1];
+  ray->org_z = r->org[2];
+  ray->tnear = r->tnear;
+  ray->dir_x = r->dir[0];
+  ray->dir_y = r->dir[1];
+  ray->dir_z = r->dir[2];
+  ray->time = 0.0f;
+  ray->tfar = r->tfar;
+  ray->mask = 0xFFFFFFFFu;
+  ray->id = 0;
+  ray->flags = 0;
+}
+
+/* A packet of Embree's rays from our first `count` (at most 8) rays; the lanes past `count`
+ * repeat the first ray and are marked invalid. */
+static void fill_ray8(struct RTCRay8* ray, int* valid, const gs_ray* r, size_t count) {
+  for (size_t i = 0; i < 8; i++) {
+    const gs_ray* ri = &r[i < count ? i : 0];
+    valid[i] = i < count ? -1 : 0;
+    ray->org_x[i] = ri->org[0];
+    ray->org_y[i] = ri->org[1];
+    ray->org_z[i] = ri->org[2];
+    ray->tnear[i] = ri->tnear;
+    ray->dir_x[i] = ri->dir[0];
+    ray->dir_y[i] = ri->dir[1];
+    ray->dir_z[i] = ri->dir[2];
+    ray->time[i] = 0.0f;
+    ray->tfar[i] = ri->tfar;
+    ray->mask[i] = 0xFFFFFFFFu;
+    ray->id[i] = (unsigned)i;
+    ray->flags[i] = 0;
+  }
+}
+
 static void intersect1(const gs_scene* s, const gs_ray* r, gs_hit* h) {
   struct RTCRayHit rh;
-  rh.ray.org_x = r->org[0];
-  rh.ray.org_y = r->org[1];
-  rh.ray.org_z = r->org[2];
-  rh.ray.tnear = r->tnear;
-  rh.ray.dir_x = r->dir[0];
-  rh.ray.dir_y = r->dir[1];
-  rh.ray.dir_z = r->dir[2];
-  rh.ray.time = 0.0f;
-  rh.ray.tfar = r->tfar;
-  rh.ray.mask = 0xFFFFFFFFu;
-  rh.ray.id = 0;
-  rh.ray.flags = 0;
+  fill_ray1(&rh.ray, r);
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
 #if GS_EMBREE4
@@ -238,21 +264,8 @@ static void intersect1(const gs_scene* s, const gs_ray* r, gs_hit* h) {
 static void intersect8(const gs_scene* s, const gs_ray* r, gs_hit* h, size_t count) {
   struct RTCRayHit8 rh;
   int valid[8];
+  fill_ray8(&rh.ray, valid, r, count);
   for (size_t i = 0; i < 8; i++) {
-    const gs_ray* ri = &r[i < count ? i : 0];
-    valid[i] = i < count ? -1 : 0;
-    rh.ray.org_x[i] = ri->org[0];
-    rh.ray.org_y[i] = ri->org[1];
-    rh.ray.org_z[i] = ri->org[2];
-    rh.ray.tnear[i] = ri->tnear;
-    rh.ray.dir_x[i] = ri->dir[0];
-    rh.ray.dir_y[i] = ri->dir[1];
-    rh.ray.dir_z[i] = ri->dir[2];
-    rh.ray.time[i] = 0.0f;
-    rh.ray.tfar[i] = ri->tfar;
-    rh.ray.mask[i] = 0xFFFFFFFFu;
-    rh.ray.id[i] = (unsigned)i;
-    rh.ray.flags[i] = 0;
     rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
     rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
   }
@@ -288,18 +301,7 @@ int gs_intersect(const gs_scene* s, const gs_ray* rays, gs_hit* hits, size_t n, 
  * triangle it finds, and sets tfar to -inf when it found one. */
 static int occluded1(const gs_scene* s, const gs_ray* r) {
   struct RTCRay ray;
-  ray.org_x = r->org[0];
-  ray.org_y = r->org[1];
-  ray.org_z = r->org[2];
-  ray.tnear = r->tnear;
-  ray.dir_x = r->dir[0];
-  ray.dir_y = r->dir[1];
-  ray.dir_z = r->dir[2];
-  ray.time = 0.0f;
-  ray.tfar = r->tfar;
-  ray.mask = 0xFFFFFFFFu;
-  ray.id = 0;
-  ray.flags = 0;
+  fill_ray1(&ray, r);
 #if GS_EMBREE4
   struct RTCOccludedArguments args;
   rtcInitOccludedArguments(&args);
@@ -316,22 +318,7 @@ static int occluded1(const gs_scene* s, const gs_ray* r) {
 static void occluded8(const gs_scene* s, const gs_ray* r, uint8_t* hit, size_t count) {
   struct RTCRay8 ray;
   int valid[8];
-  for (size_t i = 0; i < 8; i++) {
-    const gs_ray* ri = &r[i < count ? i : 0];
-    valid[i] = i < count ? -1 : 0;
-    ray.org_x[i] = ri->org[0];
-    ray.org_y[i] = ri->org[1];
-    ray.org_z[i] = ri->org[2];
-    ray.tnear[i] = ri->tnear;
-    ray.dir_x[i] = ri->dir[0];
-    ray.dir_y[i] = ri->dir[1];
-    ray.dir_z[i] = ri->dir[2];
-    ray.time[i] = 0.0f;
-    ray.tfar[i] = ri->tfar;
-    ray.mask[i] = 0xFFFFFFFFu;
-    ray.id[i] = (unsigned)i;
-    ray.flags[i] = 0;
-  }
+  fill_ray8(&ray, valid, r, count);
 #if GS_EMBREE4
   struct RTCOccludedArguments args;
   rtcInitOccludedArguments(&args);
