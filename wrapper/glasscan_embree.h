@@ -86,8 +86,8 @@ int gs_intersect(const gs_scene* scene, const gs_ray* rays, gs_hit* hits, size_t
 
 /**
  * Whether each of `n` rays meets the surface at all within its [tnear, tfar] (hit[i] = 1) or
- * not (0): the same answer as gs_intersect finding a hit, found sooner since any triangle ends
- * the search. With `coherent` != 0 in packets of 8 (rays in groups that run close together),
+ * not (0), found sooner than by gs_intersect since any triangle ends the search; the same
+ * answer but for a ray grazing a triangle's edge within float precision. With `coherent` != 0 in packets of 8 (rays in groups that run close together),
  * otherwise one by one. Thread-safe (call from many threads on disjoint slices). Returns 0 on
  * success.
  */

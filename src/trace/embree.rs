@@ -347,10 +347,11 @@ impl Scene {
         Ok(out)
     }
 
-    /// Whether each of `rays` meets the surface at all (the same answer as [`Self::intersect`]
-    /// finding a hit, sooner: any triangle ends a ray's search), in parallel on the current
-    /// rayon pool; `coherent`: the rays come in groups that run close together, worth tracing in
-    /// packets.
+    /// Whether each of `rays` meets the surface at all, sooner than [`Self::intersect`] (any
+    /// triangle ends a ray's search), in parallel on the current rayon pool; `coherent`: the
+    /// rays come in groups that run close together, worth tracing in packets. The answer is
+    /// [`Self::intersect`]'s but for a ray that grazes a triangle's edge within float precision,
+    /// where Embree's two traversals may disagree.
     pub fn hits_any(&self, rays: &[Ray], coherent: bool) -> Result<Vec<bool>, TraceError> {
         let mut out = vec![false; rays.len()];
         rays.par_chunks(CHUNK)
