@@ -7,6 +7,12 @@
 //! bending penalty — dihedral angles, or the squared umbrella operator — has no gradient inside
 //! a uniformly bent patch and moves it only from its rim inward; and with the rim free to move,
 //! the energy shrinks the patch and everything attached to it.)
+//!
+//! On a graded mesh (long edges in a flat face's middle, short ones where the surface bends)
+//! the energy also pulls each vertex towards its neighbours' centroid along the surface, a pull
+//! along a flat face that dragged a block's plinth outwards stage by stage; there the
+//! optimisation takes the term's gradient along each vertex normal only ([`along_normals`]), and
+//! where a vertex sits on the surface is the remesher's to decide.
 
 use nalgebra::Vector3;
 use rayon::prelude::*;
@@ -60,4 +66,13 @@ pub fn add_membrane(
         ..Contributions::default()
     });
     acc.add(&chunks);
+}
+
+/// Replaces each vector of `grad` by its component along the unit vertex normal of the same
+/// index in `normals`: the gradient of a term with respect to each vertex's offset along its
+/// normal (the normals held fixed), as a position gradient.
+pub fn along_normals(grad: &mut [V3], normals: &[V3]) {
+    for (g, n) in grad.iter_mut().zip(normals) {
+        *g = n * n.dot(g);
+    }
 }

@@ -272,6 +272,12 @@ fn check_optimizer(o: &Optimizer) -> Result<(), String> {
     Ok(())
 }
 
+/// `balanced`'s and `accurate`'s edges that follow the surface: a chord within a fiftieth of
+/// the stage's edge from the surface, and at most three times the stage's edge where it is flat
+/// (docs/decisions.md#edges-that-follow-the-surface).
+const SIZING_ERROR: f64 = 0.02;
+const SIZING_MAX_EDGE: f64 = 3.0;
+
 impl Settings {
     /// The preset's settings.
     pub fn preset(preset: Preset) -> Self {
@@ -330,6 +336,8 @@ impl Settings {
                 iterations: 150,
                 refraction_views: 4,
                 silhouette_views: 8,
+                sizing_error: SIZING_ERROR,
+                sizing_max_edge: SIZING_MAX_EDGE,
                 ..base
             },
             Preset::Accurate => Settings {
@@ -347,6 +355,8 @@ impl Settings {
                 // as far in millimetres as that one
                 // (docs/decisions.md#accurates-fine-stages-regularisers-that-reach-as-far-in-millimetres).
                 smoothing_edge: 0.0065,
+                sizing_error: SIZING_ERROR,
+                sizing_max_edge: SIZING_MAX_EDGE,
                 ..base
             },
             // DRT's schedule, optimiser and terms. DRT sums its terms (weights 40·217.5/H² per

@@ -4,7 +4,7 @@
 use super::config::Settings;
 use super::coverage::Coverage;
 use super::validation::Split;
-use crate::loss::membrane::add_membrane;
+use crate::loss::membrane::{add_membrane, along_normals};
 use crate::loss::refraction::{add_view, RefractionSettings};
 use crate::loss::silhouette::{self, ContourMesh, SilhouetteSettings};
 use crate::loss::smoothness::add_smoothness;
@@ -311,7 +311,9 @@ pub(super) fn smoothness_term(
 }
 
 /// The membrane term on the patches of vertices `coverage` says the refraction data has not seen
-/// (nothing at weight 0 or before the record is warm), and the share of the vertices it acts on.
+/// (nothing at weight 0 or before the record is warm), and the share of the vertices it acts on;
+/// on a stage graded by `sizing_error`, its gradient along the vertex normals only
+/// ([`along_normals`]).
 pub(super) fn membrane_term(
     mesh: &TriMesh,
     edges: &[InteriorEdge],
@@ -324,9 +326,13 @@ pub(super) fn membrane_term(
         .then(|| coverage.unseen_patches(edges))
         .flatten();
     let mut share = 0.0;
-    if let Some(patches) = patches {
+    if let Some(patches) = &patches {
         share = patches.iter().filter(|p| **p).count() as f64 / patches.len().max(1) as f64;
-        add_membrane(mesh, edges, &patches, edge_mm, &mut acc);
+        add_membrane(mesh, edges, patches, edge_mm, &mut acc);
     }
-    (TermValue::from(acc, mesh), share)
+    let mut term = TermValue::from(acc, mesh);
+    if share > 0.0 && settings.sizing_error > 0.0 {
+        along_normals(&mut term.grad, &mesh.vertex_normals());
+    }
+    (term, share)
 }

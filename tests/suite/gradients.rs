@@ -5,7 +5,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use glasscan::loss::bits::PixelBits;
-use glasscan::loss::membrane::add_membrane;
+use glasscan::loss::membrane::{add_membrane, along_normals};
 use glasscan::loss::refraction::{
     add_view, footprint_gradient_into, footprint_offsets, pixel_gradient, MeshState, PixelAxes,
     PixelGradient, PixelTarget, RefractionSettings, ResidualForm, ViewTargets,
@@ -713,6 +713,61 @@ fn the_membrane_pulls_every_vertex_of_a_uniformly_bulged_patch_down() {
         .iter()
         .fold((f64::MAX, 0.0f64), |(l, h), &g| (l.min(g), h.max(g)));
     assert!(lo > 0.0 && hi < 1.01 * lo, "uniform pull down: {lo} … {hi}");
+}
+
+#[test]
+fn the_membrane_moves_vertices_of_a_graded_face_only_along_their_normals() {
+    // A box's top, graded (its vertices crowded towards x = 5) and bulged, its rim held: the
+    // energy's gradient has a part along the face (towards the neighbours' centroid, which
+    // grading moves); taken along the normals, none is left, and what is left is the energy's
+    // derivative along each normal.
+    let mut grid = glasscan::mesh::shapes::cuboid(Vector3::new(10.0, 10.0, 1.0), 10);
+    let edges = grid.interior_edges();
+    let inner = |p: &Point3<f64>| p.z > 0.49 && p.x.abs() < 4.9 && p.y.abs() < 4.9;
+    let top: Vec<bool> = grid.positions.iter().map(inner).collect();
+    for (p, t) in grid.positions.iter_mut().zip(&top) {
+        if *t {
+            p.x = 5.0 - 10.0 * ((5.0 - p.x) / 10.0).powf(1.5);
+            p.z += 0.02 * (25.0 - p.x * p.x - p.y * p.y);
+        }
+    }
+    let energy = |m: &TriMesh| {
+        let mut acc = Accumulator::new(m.positions.len(), false);
+        add_membrane(m, &edges, &top, 1.0, &mut acc);
+        acc
+    };
+    let raw = energy(&grid).grad;
+    let normals = grid.vertex_normals();
+    let mut force = raw.clone();
+    along_normals(&mut force, &normals);
+    let moved: Vec<usize> = (0..grid.positions.len()).filter(|&v| top[v]).collect();
+    let tangential = |v: usize| (raw[v] - normals[v] * normals[v].dot(&raw[v])).norm();
+    let most = moved.iter().map(|&v| tangential(v)).fold(0.0, f64::max);
+    let largest = moved.iter().map(|&v| raw[v].norm()).fold(0.0, f64::max);
+    assert!(
+        most > 0.1 * largest,
+        "the graded face pulls along itself: {most} of {largest}"
+    );
+    for &v in &moved {
+        let n = normals[v];
+        assert!(
+            (force[v] - n * n.dot(&force[v])).norm() < 1e-12,
+            "vertex {v}: {}",
+            force[v]
+        );
+        let h = 1e-6;
+        let at = |t: f64| {
+            let mut m = grid.clone();
+            m.positions[v] += n * t;
+            energy(&m).loss
+        };
+        let fd = (at(h) - at(-h)) / (2.0 * h);
+        assert!(
+            (fd - n.dot(&force[v])).abs() < 1e-6 * (1.0 + fd.abs()),
+            "vertex {v}: {fd} against {}",
+            n.dot(&force[v])
+        );
+    }
 }
 
 fn ring_camera(w: u32, h: u32, f: f64, dist: [f64; 5]) -> Camera {
