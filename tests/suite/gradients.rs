@@ -17,7 +17,7 @@ use glasscan::loss::silhouette::{
 use glasscan::loss::smoothness::{add_smoothness, Smoothness};
 use glasscan::loss::{Accumulator, Contributions, DropReason, Robust};
 use glasscan::mesh::shapes::{ellipsoid, icosphere, perturb_radially};
-use glasscan::mesh::TriMesh;
+use glasscan::mesh::{InteriorEdge, TriMesh};
 use glasscan::rig::{Camera, Turntable};
 use glasscan::scan::decoded::{MASK_FILLED, MASK_OBJECT};
 use glasscan::scan::silhouette::Silhouette;
@@ -688,20 +688,31 @@ fn membrane_gradients_match_finite_differences() {
     assert_mesh_gradient(&mesh, moved, total, 1e-6, "membrane");
 }
 
-#[test]
-fn the_membrane_pulls_every_vertex_of_a_uniformly_bulged_patch_down() {
-    // The top of a box bulged by a paraboloid (uniform curvature) with its rim held: every
-    // interior vertex's gradient points up (descent lowers it), the centre's as much as those
-    // near the rim — the patch flattens as a whole.
+/// A 10 × 10 × 1 mm box whose top's inner vertices (the membrane's patch; its rim held) are
+/// lifted by a paraboloid (uniform curvature) and, if `graded`, crowded towards x = 5; with its
+/// interior edges and which vertices are the patch.
+fn bulged_box_top(graded: bool) -> (TriMesh, Vec<InteriorEdge>, Vec<bool>) {
     let mut grid = glasscan::mesh::shapes::cuboid(Vector3::new(10.0, 10.0, 1.0), 10);
     let edges = grid.interior_edges();
     let inner = |p: &Point3<f64>| p.z > 0.49 && p.x.abs() < 4.9 && p.y.abs() < 4.9;
     let top: Vec<bool> = grid.positions.iter().map(inner).collect();
     for (p, t) in grid.positions.iter_mut().zip(&top) {
         if *t {
+            if graded {
+                p.x = 5.0 - 10.0 * ((5.0 - p.x) / 10.0).powf(1.5);
+            }
             p.z += 0.02 * (25.0 - p.x * p.x - p.y * p.y);
         }
     }
+    (grid, edges, top)
+}
+
+#[test]
+fn the_membrane_pulls_every_vertex_of_a_uniformly_bulged_patch_down() {
+    // The top of a box bulged by a paraboloid (uniform curvature) with its rim held: every
+    // interior vertex's gradient points up (descent lowers it), the centre's as much as those
+    // near the rim — the patch flattens as a whole.
+    let (grid, edges, top) = bulged_box_top(false);
     let mut acc = Accumulator::new(grid.positions.len(), false);
     add_membrane(&grid, &edges, &top, 1.0, &mut acc);
     let ups: Vec<f64> = (0..grid.positions.len())
@@ -721,16 +732,7 @@ fn the_membrane_moves_vertices_of_a_graded_face_only_along_their_normals() {
     // energy's gradient has a part along the face (towards the neighbours' centroid, which
     // grading moves); taken along the normals, none is left, and what is left is the energy's
     // derivative along each normal.
-    let mut grid = glasscan::mesh::shapes::cuboid(Vector3::new(10.0, 10.0, 1.0), 10);
-    let edges = grid.interior_edges();
-    let inner = |p: &Point3<f64>| p.z > 0.49 && p.x.abs() < 4.9 && p.y.abs() < 4.9;
-    let top: Vec<bool> = grid.positions.iter().map(inner).collect();
-    for (p, t) in grid.positions.iter_mut().zip(&top) {
-        if *t {
-            p.x = 5.0 - 10.0 * ((5.0 - p.x) / 10.0).powf(1.5);
-            p.z += 0.02 * (25.0 - p.x * p.x - p.y * p.y);
-        }
-    }
+    let (grid, edges, top) = bulged_box_top(true);
     let energy = |m: &TriMesh| {
         let mut acc = Accumulator::new(m.positions.len(), false);
         add_membrane(m, &edges, &top, 1.0, &mut acc);
