@@ -163,7 +163,8 @@ pub(super) fn iteration_terms(
         let refraction = refraction?;
         let (membrane, t_membrane) = timed(|| {
             coverage.record(&refraction.grad);
-            membrane_term(mesh, edges, coverage, settings, edge_mm)
+            let geometry = (mesh, surface.vertex_normals(), edges);
+            membrane_term(geometry, coverage, settings, edge_mm)
         });
         Ok((refraction, membrane, t_refraction, t_membrane))
     };
@@ -313,10 +314,10 @@ pub(super) fn smoothness_term(
 /// The membrane term on the patches of vertices `coverage` says the refraction data has not seen
 /// (nothing at weight 0 or before the record is warm), and the share of the vertices it acts on;
 /// on a stage graded by `sizing_error`, its gradient along the vertex normals only
-/// ([`along_normals`]).
+/// ([`along_normals`]; `vertex_normals`: the mesh's unit vertex normals when the caller has them
+/// current, else they are computed).
 pub(super) fn membrane_term(
-    mesh: &TriMesh,
-    edges: &[InteriorEdge],
+    (mesh, vertex_normals, edges): (&TriMesh, Option<&[V3]>, &[InteriorEdge]),
     coverage: &Coverage,
     settings: &Settings,
     edge_mm: f64,
@@ -332,7 +333,10 @@ pub(super) fn membrane_term(
     }
     let mut term = TermValue::from(acc, mesh);
     if share > 0.0 && settings.sizing_error > 0.0 {
-        along_normals(&mut term.grad, &mesh.vertex_normals());
+        match vertex_normals {
+            Some(normals) => along_normals(&mut term.grad, normals),
+            None => along_normals(&mut term.grad, &mesh.vertex_normals()),
+        }
     }
     (term, share)
 }
