@@ -327,9 +327,9 @@ pub(super) fn membrane_term(
         .then(|| coverage.unseen_patches(edges))
         .flatten();
     let mut share = 0.0;
-    if let Some(patches) = &patches {
+    if let Some(patches) = patches {
         share = patches.iter().filter(|p| **p).count() as f64 / patches.len().max(1) as f64;
-        add_membrane(mesh, edges, patches, edge_mm, &mut acc);
+        add_membrane(mesh, edges, &patches, edge_mm, &mut acc);
     }
     let mut term = TermValue::from(acc, mesh);
     if share > 0.0 && settings.sizing_error > 0.0 {
