@@ -165,7 +165,7 @@ fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
     }
     if let Some(c) = &outcome.confidence {
         outln!(
-            "support: {:.1} % of the area by refraction rays, {:.1} % by silhouettes only, {:.1} % by neither (confidence.png; result.ply's quality: rays per mm²)",
+            "support: {:.1} % of the area by refraction rays, {:.1} % by silhouettes only, {:.1} % by neither (confidence.png; result.ply's quality: rays per mm² over their mean penalty)",
             100.0 * c.refraction_share,
             100.0 * c.silhouette_only_share,
             100.0 * c.unconstrained_share

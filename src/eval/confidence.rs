@@ -1,5 +1,5 @@
 //! How well a result's confidence (its per-vertex `quality`, as `reconstruct` writes it: refraction
-//! rays per mm²) predicts its error: the mean distance to the reference of the vertices in each
+//! rays per mm² over their mean penalty) predicts its error: the mean distance to the reference of the vertices in each
 //! quarter of the result's area, from the least to the most confident.
 
 use serde::Serialize;

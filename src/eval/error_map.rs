@@ -178,12 +178,13 @@ pub fn write_support_map(
     )
 }
 
-/// The legend of a map of refraction rays per mm² (`per_vertex`): its title, unit, and the
-/// value shown blue, twice the median over the vertices (at least 1).
+/// The legend of a map of a result's confidence (`per_vertex`, its `quality`: refraction rays
+/// per mm² over their mean penalty): its title, unit, and the value shown blue, twice the
+/// median over the vertices (at least 1).
 pub fn confidence_legend(per_vertex: &[f64]) -> (&'static str, &'static str, f64) {
     let median = crate::util::median(per_vertex.to_vec());
     (
-        "refraction rays per mm^2 at the surface (red: none; the mesh's vertex quality)",
+        "refraction rays per mm^2 over their mean penalty (red: none; the mesh's vertex quality)",
         "/mm^2",
         (2.0 * median).max(1.0),
     )

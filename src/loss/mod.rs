@@ -125,6 +125,9 @@ pub struct Contributions {
     pub ngrad: Vec<(u32, V3)>,
     /// ∂L/∂ the object's refractive index.
     pub ior: f64,
+    /// (vertex, penalty) entries, one per `grad` entry of a refraction pixel: its loss per unit
+    /// of its weight; only for a [`Accumulator::counting`] one.
+    pub penalties: Vec<(u32, f64)>,
 }
 
 impl Contributions {
@@ -165,6 +168,9 @@ pub struct Accumulator {
     /// Per vertex, the position-gradient entries added (a ray's refraction at one of its faces,
     /// a contour edge at it); kept only by [`Self::counting`], else empty.
     pub touches: Vec<u32>,
+    /// Per vertex, the sum of the [`Contributions::penalties`] it receives (the penalties of
+    /// the refraction pixels behind its touches); kept only by [`Self::counting`], else empty.
+    pub penalty: Vec<f64>,
 }
 
 impl Accumulator {
@@ -172,6 +178,7 @@ impl Accumulator {
     pub fn counting(vertices: usize, vertex_normals: bool) -> Self {
         Self {
             touches: vec![0; vertices],
+            penalty: vec![0.0; vertices],
             ..Self::new(vertices, vertex_normals)
         }
     }
@@ -190,6 +197,7 @@ impl Accumulator {
             },
             ior: 0.0,
             touches: Vec::new(),
+            penalty: Vec::new(),
         }
     }
 
@@ -228,6 +236,11 @@ impl Accumulator {
             for &(v, _) in chunks.iter().flat_map(|c| &c.grad) {
                 if let Some(t) = self.touches.get_mut(v as usize) {
                     *t += 1;
+                }
+            }
+            for &(v, x) in chunks.iter().flat_map(|c| &c.penalties) {
+                if let Some(t) = self.penalty.get_mut(v as usize) {
+                    *t += x;
                 }
             }
         }

@@ -597,7 +597,8 @@ fn interface_adjoint(
 }
 
 /// Traces one view through `surface` (holding `mesh`; with `vertex_normals` of `mesh` for the
-/// vertex-normal model) and adds its refraction loss and gradient to `acc`.
+/// vertex-normal model) and adds its refraction loss and gradient to `acc` (and, to a counting
+/// one, each compared pixel's penalty at the vertices it touches: [`Contributions::penalties`]).
 pub fn add_view(
     surface: &dyn Surface,
     mesh: &TriMesh,
@@ -622,6 +623,7 @@ pub fn add_view(
     };
     // Trace and differentiate chunk by chunk, each on one thread, so the chunk's paths stay in
     // cache between the two; then sum the chunks in order.
+    let counting = !acc.penalty.is_empty();
     let chunks: Vec<Contributions> = view
         .pixels
         .par_chunks(TRACE_CHUNK)
@@ -648,7 +650,18 @@ pub fn add_view(
                     (dirs[i], ok.map(|()| trails[i].prims()))
                 }));
                 match footprint_gradient_into(&mesh, s, view, px, &footprint, &mut g) {
-                    Ok(()) => c.push_pixel(&g, px.weight),
+                    Ok(()) => {
+                        c.push_pixel(&g, px.weight);
+                        if counting {
+                            let penalty = if px.weight > 0.0 {
+                                g.loss / px.weight
+                            } else {
+                                0.0
+                            };
+                            c.penalties
+                                .extend(g.grad.iter().map(|&(v, _)| (v, penalty)));
+                        }
+                    }
                     Err(r) => c.drops.count(r),
                 }
             }

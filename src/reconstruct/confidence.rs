@@ -6,8 +6,9 @@
 //! A vertex is *constrained by refraction* when at least [`MIN_RAYS`] compared rays refract at
 //! its faces, *by silhouettes only* when fewer do but a contour edge at it pulls on some view's
 //! silhouette, and *by neither* otherwise: there the regularisers (smoothness, the membrane)
-//! placed it. The result's `quality` vertex property is its refraction rays per mm² of its
-//! area (a third of its faces' area), which MeshLab colours.
+//! placed it. The result's `quality` vertex property, which MeshLab colours, is its refraction
+//! rays per mm² of its area (a third of its faces' area) over their mean penalty: many rays
+//! that agree with the result hold it more than few, or many that disagree.
 
 use anyhow::Result;
 use serde::Serialize;
@@ -22,6 +23,11 @@ use crate::trace::path::MeshSurface;
 /// constrained by refraction: a ray pins a point only along its path, a few from different
 /// directions pin it in space.
 pub const MIN_RAYS: u32 = 3;
+
+/// The least mean penalty [`Confidence::quality`] divides by (the direction residual's penalty
+/// is unitless: a residual of 1e-6): it keeps the quality finite, as a float, where the rays
+/// fit exactly.
+const MIN_MEAN_PENALTY: f64 = 1e-12;
 
 /// What constrains a vertex.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -38,6 +44,9 @@ pub struct Confidence {
     /// Per vertex: compared refraction rays that refract at its faces (a ray counts at each of
     /// its refractions), over every view.
     pub rays: Vec<u32>,
+    /// Per vertex: the sum of those rays' penalties (each compared pixel's loss per unit of
+    /// its weight, counted once for each of its rays' refractions at the vertex's faces).
+    pub penalty: Vec<f64>,
     /// Per vertex: contour edges at it that pull on a silhouette, over every view.
     pub contour_edges: Vec<u32>,
     /// Per vertex: a third of its faces' area, mm².
@@ -67,7 +76,20 @@ impl Confidence {
         }
     }
 
-    /// Per vertex, refraction rays per mm² of its area (the result's `quality`).
+    /// Per vertex, the result's `quality`: refraction rays per mm² of its area over their mean
+    /// penalty (0 where no ray refracts). Were each ray's penalty the variance of its residual,
+    /// this would be the rays' information about the surface per mm².
+    pub fn quality(&self) -> Vec<f64> {
+        let density = self.rays_per_mm2();
+        (density.iter().zip(&self.rays).zip(&self.penalty))
+            .map(|((&d, &r), &p)| {
+                let mean = if r > 0 { p / r as f64 } else { 0.0 };
+                d / mean.max(MIN_MEAN_PENALTY)
+            })
+            .collect()
+    }
+
+    /// Per vertex, refraction rays per mm² of its area.
     pub fn rays_per_mm2(&self) -> Vec<f64> {
         (self.rays.iter().zip(&self.area_mm2))
             .map(|(&r, &a)| if a > 0.0 { r as f64 / a } else { 0.0 })
@@ -136,6 +158,7 @@ pub fn measure(
     Ok(Confidence {
         // Each refraction adds an entry for each of its triangle's three vertices.
         rays: refraction.touches,
+        penalty: refraction.penalty,
         contour_edges: silhouette.touches,
         area_mm2: mesh.vertex_areas(),
     })
@@ -149,6 +172,7 @@ mod tests {
     fn support_and_shares_follow_the_counts_and_areas() {
         let c = Confidence {
             rays: vec![10, 2, 0, 0],
+            penalty: vec![5.0, 4.0, 0.0, 0.0],
             contour_edges: vec![0, 1, 0, 3],
             area_mm2: vec![1.0, 2.0, 3.0, 4.0],
         };
@@ -160,6 +184,8 @@ mod tests {
         assert!((s.silhouette_only_share - 0.6).abs() < 1e-12, "{s:?}");
         assert!((s.unconstrained_share - 0.3).abs() < 1e-12, "{s:?}");
         assert_eq!(c.rays_per_mm2(), [10.0, 1.0, 0.0, 0.0]);
+        // Mean penalties 0.5 and 2: the first vertex's rays hold it 40× as much per mm².
+        assert_eq!(c.quality(), [20.0, 0.5, 0.0, 0.0]);
         // Half the area (the 4 mm² vertex and more) has no ray: the median density is 0.
         assert_eq!(s.median_rays_per_mm2, 0.0);
     }

@@ -23,7 +23,7 @@ use crate::eval::confidence::{error_by_confidence, ErrorByConfidence};
 use crate::eval::error_map::{confidence_legend, write_support_map};
 use crate::eval::{evaluate_on, EvalOptions, EvalReport};
 use crate::mesh::io::{read_mesh, write_mesh_with_quality};
-use crate::mesh::stats::quality;
+use crate::mesh::stats;
 use crate::mesh::TriMesh;
 use crate::scan::{Ior, Scan};
 use crate::trace::path::MeshSurface;
@@ -113,8 +113,8 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         warnings.push(w);
     }
     let confidence = confidence::measure(&inputs, &surface, settings, index.used)?;
-    let density = confidence.rays_per_mm2();
-    let evaluation = evaluate_against_truth(scan, (&result, surface.scene()), &density)?;
+    let quality = confidence.quality();
+    let evaluation = evaluate_against_truth(scan, (&result, surface.scene()), &quality)?;
     let report = Report {
         views: views.len(),
         result_stage,
@@ -245,11 +245,11 @@ fn choose_result(
 }
 
 /// The result (with its static scene) against the scan's `ground_truth.ply`, if it has one, and
-/// its error by quarters of the area ordered by its confidence (`density`, per vertex).
+/// its error by quarters of the area ordered by its confidence (`quality`, per vertex).
 fn evaluate_against_truth(
     scan: &Scan,
     (result, scene): (&TriMesh, &crate::trace::Scene),
-    density: &[f64],
+    quality: &[f64],
 ) -> Result<Option<(EvalReport, ErrorByConfidence)>> {
     let truth = scan.dir.join("ground_truth.ply");
     if !truth.is_file() {
@@ -264,7 +264,7 @@ fn evaluate_against_truth(
             (&reference, &ref_scene),
             &EvalOptions::default(),
         )?,
-        error_by_confidence(result, density, &ref_scene)?,
+        error_by_confidence(result, quality, &ref_scene)?,
     )))
 }
 
@@ -284,15 +284,15 @@ struct Report<'a> {
 /// (the result as `surface` holds it).
 fn write_results(out: &Path, finished: &Finished, surface: &MeshSurface, r: &Report) -> Result<()> {
     let (checkpoint, result) = (&finished.checkpoint, surface.mesh());
-    let density = r.confidence.rays_per_mm2();
-    write_mesh_with_quality(&out.join("result.ply"), result, &density)?;
+    let quality = r.confidence.quality();
+    write_mesh_with_quality(&out.join("result.ply"), result, &quality)?;
     loss_plot(&out.join("loss.png"), checkpoint)?;
     let summary = r.confidence.summary();
     write_support_map(
         &out.join("confidence.png"),
         (result, surface.scene()),
-        &density,
-        confidence_legend(&density),
+        &quality,
+        confidence_legend(&quality),
     )?;
     let report = serde_json::json!({
         "settings": checkpoint.settings,
@@ -305,7 +305,7 @@ fn write_results(out: &Path, finished: &Finished, surface: &MeshSurface, r: &Rep
         "result_stage": r.result_stage + 1,
         "ior": r.index,
         "confidence": summary,
-        "result_mesh": quality(result),
+        "result_mesh": stats::quality(result),
         "evaluation_against_ground_truth": r.evaluation.map(|e| e.to_json()),
         "error_by_confidence_against_ground_truth": r.error_by_confidence,
         "warnings": r.warnings,

@@ -686,20 +686,21 @@ fn an_unknown_refractive_index_is_estimated_and_a_wrong_one_warns() {
     );
 }
 
-/// The confidence field marks what the data cannot see: on the cut prism's exact scan (24
-/// level views), measured on the true shape remeshed to 3 mm edges, no compared ray refracts at
-/// the flat top and bottom (seen only edge-on; a ray inside meets them beyond the critical
-/// angle) and no contour edge lies inside them, so every vertex 6 mm or more inside their
-/// outline is constrained by neither; most of the side faces' vertices are held by refraction.
-#[test]
-fn a_face_no_ray_or_silhouette_sees_is_marked_unconstrained() {
-    use glasscan::reconstruct::confidence::{measure, Support};
+/// The cut prism's exact scan (24 level views, 320×240, face normals) in a temporary folder,
+/// the true shape remeshed to 3 mm edges, and the confidence measured on `mesh(true shape)`.
+fn prism_confidence(
+    mesh: impl Fn(&glasscan::mesh::TriMesh) -> glasscan::mesh::TriMesh,
+) -> (
+    glasscan::mesh::TriMesh,
+    glasscan::reconstruct::confidence::Confidence,
+) {
     use glasscan::reconstruct::config::{Preset, Settings};
     let dir = tempfile::tempdir().unwrap();
     let prism = glasscan::mesh::shapes::cut_prism();
     crate::common::decoded_scan_with_normals(dir.path(), &prism, 24, (320, 240), NormalModel::Face);
-    let mesh =
+    let remeshed =
         glasscan::remesh::remesh(&prism, &glasscan::remesh::RemeshOptions::uniform(3.0)).unwrap();
+    let mesh = mesh(&remeshed);
     let scan = glasscan::scan::Scan::open(dir.path()).unwrap();
     let views: Vec<usize> = (0..24).collect();
     let settings = Settings {
@@ -712,7 +713,21 @@ fn a_face_no_ray_or_silhouette_sees_is_marked_unconstrained() {
         glasscan::reconstruct::load_inputs(&scan, &views, &settings, silhouettes, diagonal)
             .unwrap();
     let surface = glasscan::trace::path::MeshSurface::new(&mesh, settings.normals).unwrap();
-    let confidence = measure(&inputs, &surface, &settings, scan.config.ior.nominal()).unwrap();
+    let ior = scan.config.ior.nominal();
+    let confidence =
+        glasscan::reconstruct::confidence::measure(&inputs, &surface, &settings, ior).unwrap();
+    (mesh, confidence)
+}
+
+/// The confidence field marks what the data cannot see: on the cut prism's exact scan (24
+/// level views), measured on the true shape remeshed to 3 mm edges, no compared ray refracts at
+/// the flat top and bottom (seen only edge-on; a ray inside meets them beyond the critical
+/// angle) and no contour edge lies inside them, so every vertex 6 mm or more inside their
+/// outline is constrained by neither; most of the side faces' vertices are held by refraction.
+#[test]
+fn a_face_no_ray_or_silhouette_sees_is_marked_unconstrained() {
+    use glasscan::reconstruct::confidence::Support;
+    let (mesh, confidence) = prism_confidence(|m| m.clone());
     let (mut inner_cap, mut side, mut side_refraction) = (0, 0, 0);
     for (v, p) in mesh.positions.iter().enumerate() {
         // The octagon inset by 6 mm: |x| ≤ 29, |z| ≤ 11.5 and |x| + |z| ≤ 29 + 11.5 − 6.
@@ -740,4 +755,44 @@ fn a_face_no_ray_or_silhouette_sees_is_marked_unconstrained() {
         "{side_refraction} of {side}"
     );
     assert!(summary.unconstrained_share > 0.1, "{summary:?}");
+}
+
+/// Rays that disagree with the result hold it less: the prism's front face (z = 17.5 mm)
+/// dented inwards by up to 0.5 mm over its middle makes the rays through the dent miss their
+/// decoded points, and the dent's confidence (the result's `quality`) falls below half the true
+/// face's (measured: 0.31×), while the octagon's x = ±35 mm ends, which the dent's rays hardly
+/// reach, keep theirs within 10 % (measured: unchanged).
+#[test]
+fn rays_that_disagree_with_the_shape_lower_its_confidence() {
+    let dent = |p: &nalgebra::Point3<f64>| {
+        let r2 = (p.x / 12.0).powi(2) + (p.y / 12.0).powi(2);
+        ((p.z - 17.5).abs() < 1e-6 && r2 < 1.0).then(|| 0.5 * (1.0 - r2).powi(2))
+    };
+    let (mesh, truth) = prism_confidence(|m| m.clone());
+    let (_, dented) = prism_confidence(|m| {
+        let mut m = m.clone();
+        for p in &mut m.positions {
+            p.z -= dent(p).unwrap_or(0.0);
+        }
+        m
+    });
+    let (q_truth, q_dented) = (truth.quality(), dented.quality());
+    let mean = |q: &[f64], keep: &dyn Fn(&nalgebra::Point3<f64>) -> bool| {
+        let vs: Vec<usize> = (0..q.len()).filter(|&v| keep(&mesh.positions[v])).collect();
+        assert!(vs.len() > 5, "{} vertices", vs.len());
+        vs.iter().map(|&v| q[v]).sum::<f64>() / vs.len() as f64
+    };
+    let in_dent = |p: &nalgebra::Point3<f64>| dent(p).is_some_and(|d| d > 0.2);
+    let ends = |p: &nalgebra::Point3<f64>| (p.x.abs() - 35.0).abs() < 1e-6 && p.y.abs() < 15.0;
+    let (dent_truth, dent_dented) = (mean(&q_truth, &in_dent), mean(&q_dented, &in_dent));
+    let (ends_truth, ends_dented) = (mean(&q_truth, &ends), mean(&q_dented, &ends));
+    eprintln!("quality in the dent {dent_truth:.3e} → {dent_dented:.3e}, at the ends {ends_truth:.3e} → {ends_dented:.3e}");
+    assert!(
+        dent_dented < 0.5 * dent_truth,
+        "{dent_truth} → {dent_dented}"
+    );
+    assert!(
+        (ends_dented / ends_truth - 1.0).abs() < 0.1,
+        "{ends_truth} → {ends_dented}"
+    );
 }
