@@ -56,6 +56,10 @@ pub struct StageReport {
     /// scan's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ior: Option<f64>,
+    /// A warm-up stage not run: an earlier one fit the held-out views worse than the start mesh
+    /// ([`WarmUpVerdict`]); its mesh is the start mesh.
+    #[serde(default)]
+    pub skipped: bool,
 }
 
 /// Where a stage's wall time went, seconds, and how fast it traced.
@@ -156,11 +160,11 @@ impl Checkpoint {
 
 /// Whether the warm-up made the mesh fit the held-out views better: DRT's steps carve what the
 /// hull left (a wedge between legs) but on flat faces, where the hull is already close, they
-/// can leave the mesh worse than it started; the stages after a warm-up that fits worse start
-/// from the start mesh instead.
+/// can leave the mesh worse than it started; the first warm-up stage that fits worse ends the
+/// warm-up, and the stages after it start from the start mesh instead.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WarmUpVerdict {
-    /// Held-out refraction term of the start mesh and of the warm-up's last mesh.
+    /// Held-out refraction term of the start mesh and of the last warm-up stage's mesh judged.
     pub start_refraction: f64,
     pub warm_up_refraction: f64,
     /// True: the next stages start from the start mesh.

@@ -2,8 +2,9 @@
 //! (against the start mesh) and whether the membrane term acts (its judged stage run again
 //! without it).
 
+use super::output::stage_path;
 use super::validation::{validate_mesh, Split};
-use crate::mesh::io::read_mesh;
+use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::TriMesh;
 use anyhow::{Context, Result};
 use std::path::Path;
@@ -14,9 +15,11 @@ use super::{
     MEMBRANE_MIN_SHARE, MEMBRANE_SILHOUETTE_RATIO,
 };
 
-/// Judges the warm-up that just ended (its last mesh `warmed`) against the run's start mesh on
-/// the held-out views: returns the mesh the next stages start from, recorded in `checkpoint`. Without
-/// held-out views the warm-up is kept unjudged.
+/// Judges the warm-up stage that just ended (its mesh `warmed`) against the run's start mesh on
+/// the held-out views: returns the mesh the next stage starts from, the verdict recorded in
+/// `checkpoint`. The first warm-up stage that fits worse than the start mesh ends the warm-up:
+/// its remaining stages are skipped ([`skip_warm_up_rest`]) and the stages after it start from
+/// the start mesh. Without held-out views the warm-up is kept unjudged.
 pub(super) fn judge_warm_up(
     inputs: &Inputs,
     split: &Split,
@@ -31,29 +34,69 @@ pub(super) fn judge_warm_up(
     };
     let start = read_mesh(&out.join(&checkpoint.start_mesh))
         .context("the start mesh of this run is unreadable; start over with --force")?;
-    let Some(start_fit) = validate_mesh(
-        (inputs, checkpoint.index(inputs)),
-        split,
-        &start,
-        &checkpoint.settings,
-    )?
-    else {
-        return Ok(warmed);
+    let start_refraction = match &checkpoint.warm_up {
+        Some(verdict) => verdict.start_refraction,
+        None => {
+            let index = (inputs, checkpoint.index(inputs));
+            match validate_mesh(index, split, &start, &checkpoint.settings)? {
+                Some(fit) => fit.refraction,
+                None => return Ok(warmed),
+            }
+        }
     };
-    let discarded = warm_up_refraction > start_fit.refraction;
-    if discarded {
-        progress.note(&format!(
-            "the warm-up fits the held-out views worse than the start mesh (refraction {:.4e} \
-             against {:.4e}): the next stages start from the start mesh",
-            warm_up_refraction, start_fit.refraction
-        ));
-    }
+    let discarded = warm_up_refraction > start_refraction;
     checkpoint.warm_up = Some(WarmUpVerdict {
-        start_refraction: start_fit.refraction,
+        start_refraction,
         warm_up_refraction,
         discarded,
     });
-    Ok(if discarded { start } else { warmed })
+    if !discarded {
+        return Ok(warmed);
+    }
+    let skipped = checkpoint.settings.warmup_stages - checkpoint.stages_done;
+    progress.note(&format!(
+        "the warm-up fits the held-out views worse than the start mesh (refraction {warm_up_refraction:.4e} \
+         against {start_refraction:.4e}): the next stages start from the start mesh{}",
+        if skipped > 0 {
+            format!(", and the warm-up's last {skipped} stage(s) are skipped")
+        } else {
+            String::new()
+        }
+    ));
+    skip_warm_up_rest(checkpoint, &start, out)?;
+    Ok(start)
+}
+
+/// Records the warm-up stages not yet run as skipped: each with the start mesh `start` as its
+/// mesh, no time and no fit to the held-out views (so never the result).
+fn skip_warm_up_rest(checkpoint: &mut Checkpoint, start: &TriMesh, out: &Path) -> Result<()> {
+    let Some(last) = checkpoint.stages.last().cloned() else {
+        return Ok(());
+    };
+    while checkpoint.stages_done < checkpoint.settings.warmup_stages {
+        let stage = checkpoint.stages_done;
+        write_mesh(&stage_path(out, stage), start)?;
+        checkpoint.stages.push(StageReport {
+            stage,
+            vertices: start.positions.len(),
+            faces: start.faces.len(),
+            seconds: 0.0,
+            refraction_rays_used: 0,
+            refraction_drops: Default::default(),
+            contour_edges_used: 0,
+            degenerate_faces: 0,
+            last: IterationRecord::default(),
+            validation: None,
+            averaged: false,
+            unseen_share: 0.0,
+            membrane_share: 0.0,
+            profile: Default::default(),
+            skipped: true,
+            ..last
+        });
+        checkpoint.stages_done += 1;
+    }
+    Ok(())
 }
 
 /// Judges the membrane term on the stage that just ended (the first after the warm-up; its mesh

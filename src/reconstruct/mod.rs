@@ -140,7 +140,7 @@ fn run(
             mesh = judge_membrane(inputs, &split, &mut checkpoint, &before, mesh, progress)?;
         }
         write_mesh(&stage_path(out, checkpoint.stages_done - 1), &mesh)?;
-        if checkpoint.stages_done == settings.warmup_stages {
+        if checkpoint.stages_done <= settings.warmup_stages {
             mesh = judge_warm_up(inputs, &split, &mut checkpoint, mesh, out, progress)?;
         }
         if inputs.ior.is_auto() {

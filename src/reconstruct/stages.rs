@@ -233,6 +233,7 @@ pub(super) fn run_stage(
             ..profile
         },
         ior: Some(ior),
+        skipped: false,
     };
     Ok((report, tail.mean()))
 }

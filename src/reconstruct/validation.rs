@@ -355,6 +355,7 @@ mod tests {
             membrane_share: 0.0,
             profile: Default::default(),
             ior: None,
+            skipped: false,
         }
     }
 

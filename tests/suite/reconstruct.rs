@@ -307,17 +307,22 @@ fn accuracy(mesh: &Path, scan: &Path) -> f64 {
     v["accuracy_mm"].as_f64().unwrap()
 }
 
-/// A run judges its warm-up against its start mesh on the held-out views. Started from the true
-/// shape, which DRT's coarse steps can only make worse, the warm-up is discarded (and says so in
-/// the report) and the stages after it start from the truth again, ending closer to it than the
-/// warm-up's mesh.
+/// A run judges each warm-up stage against its start mesh on the held-out views. Started from
+/// the true shape, which DRT's coarse steps can only make worse, the warm-up is discarded after
+/// its first stage (and says so in the report), its second stage is skipped (recorded with no
+/// time and the start mesh as its mesh), and the stages after it start from the truth again,
+/// ending closer to it than the warm-up's mesh.
 #[test]
 fn a_warm_up_that_fits_worse_than_its_start_is_discarded() {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
     small_scan(&scan);
     let config = dir.path().join("c.toml");
-    std::fs::write(&config, CONFIG).unwrap();
+    std::fs::write(
+        &config,
+        CONFIG.replace("warmup_stages = 1", "warmup_stages = 2"),
+    )
+    .unwrap();
     let out = dir.path().join("out");
     let mut args = reconstruct_args(&scan, &config, &out);
     args.extend(["--init", scan.join("ground_truth.ply").to_str().unwrap()].map(String::from));
@@ -335,6 +340,20 @@ fn a_warm_up_that_fits_worse_than_its_start_is_discarded() {
         verdict["start_refraction"].as_f64().unwrap()
             < verdict["warm_up_refraction"].as_f64().unwrap()
     );
+    let (first, second) = (&report["stages"][0], &report["stages"][1]);
+    assert_eq!(first["skipped"], false, "{first}");
+    assert_eq!(second["skipped"], true, "{second}");
+    assert_eq!(second["seconds"], 0.0, "{second}");
+    let checkpoint: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("checkpoint.json")).unwrap())
+            .unwrap();
+    let start_name = checkpoint["start_mesh"].as_str().unwrap();
+    let read = |name: &str| {
+        glasscan::mesh::io::read_mesh(&out.join(name))
+            .unwrap()
+            .positions
+    };
+    assert_eq!(read("stage_01.ply"), read(start_name));
     let (warmed, result) = (
         accuracy(&out.join("stage_00.ply"), &scan),
         accuracy(&out.join("result.ply"), &scan),
