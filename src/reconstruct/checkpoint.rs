@@ -20,8 +20,8 @@ pub struct IterationRecord {
     pub total: f64,
 }
 
-/// Figures of one stage.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+/// Figures of one stage (the default: a stage that ran nothing).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct StageReport {
     pub stage: usize,
     pub edge_mm: f64,

@@ -70,7 +70,7 @@ pub(super) fn judge_warm_up(
 /// Records the warm-up stages not yet run as skipped: each with the start mesh `start` as its
 /// mesh, no time and no fit to the held-out views (so never the result).
 fn skip_warm_up_rest(checkpoint: &mut Checkpoint, start: &TriMesh, out: &Path) -> Result<()> {
-    let Some(last) = checkpoint.stages.last().cloned() else {
+    let Some((edge_mm, ior)) = checkpoint.stages.last().map(|s| (s.edge_mm, s.ior)) else {
         return Ok(());
     };
     while checkpoint.stages_done < checkpoint.settings.warmup_stages {
@@ -78,21 +78,12 @@ fn skip_warm_up_rest(checkpoint: &mut Checkpoint, start: &TriMesh, out: &Path) -
         write_mesh(&stage_path(out, stage), start)?;
         checkpoint.stages.push(StageReport {
             stage,
+            edge_mm,
             vertices: start.positions.len(),
             faces: start.faces.len(),
-            seconds: 0.0,
-            refraction_rays_used: 0,
-            refraction_drops: Default::default(),
-            contour_edges_used: 0,
-            degenerate_faces: 0,
-            last: IterationRecord::default(),
-            validation: None,
-            averaged: false,
-            unseen_share: 0.0,
-            membrane_share: 0.0,
-            profile: Default::default(),
+            ior,
             skipped: true,
-            ..last
+            ..Default::default()
         });
         checkpoint.stages_done += 1;
     }

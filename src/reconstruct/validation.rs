@@ -332,30 +332,17 @@ fn paired_t(differences: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reconstruct::{IterationRecord, StageReport};
+    use crate::reconstruct::StageReport;
 
     fn stage(stage: usize, total: Option<f64>) -> StageReport {
         StageReport {
             stage,
             edge_mm: 1.0,
-            vertices: 0,
-            faces: 0,
-            seconds: 0.0,
-            refraction_rays_used: 0,
-            refraction_drops: Default::default(),
-            contour_edges_used: 0,
-            degenerate_faces: 0,
-            last: IterationRecord::default(),
             validation: total.map(|total| ValidationRecord {
                 total,
                 ..Default::default()
             }),
-            averaged: false,
-            unseen_share: 0.0,
-            membrane_share: 0.0,
-            profile: Default::default(),
-            ior: None,
-            skipped: false,
+            ..Default::default()
         }
     }
 
