@@ -120,6 +120,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         result_stage,
         index: &index,
         confidence: &confidence,
+        quality: &quality,
         evaluation: evaluation.as_ref().map(|e| &e.0),
         error_by_confidence: evaluation.as_ref().map(|e| e.1),
         warnings: &warnings,
@@ -274,6 +275,8 @@ struct Report<'a> {
     result_stage: usize,
     index: &'a IndexReport,
     confidence: &'a Confidence,
+    /// The confidence's per-vertex quality ([`Confidence::quality`]).
+    quality: &'a [f64],
     error_by_confidence: Option<ErrorByConfidence>,
     evaluation: Option<&'a EvalReport>,
     warnings: &'a [String],
@@ -284,15 +287,14 @@ struct Report<'a> {
 /// (the result as `surface` holds it).
 fn write_results(out: &Path, finished: &Finished, surface: &MeshSurface, r: &Report) -> Result<()> {
     let (checkpoint, result) = (&finished.checkpoint, surface.mesh());
-    let quality = r.confidence.quality();
-    write_mesh_with_quality(&out.join("result.ply"), result, &quality)?;
+    write_mesh_with_quality(&out.join("result.ply"), result, r.quality)?;
     loss_plot(&out.join("loss.png"), checkpoint)?;
     let summary = r.confidence.summary();
     write_support_map(
         &out.join("confidence.png"),
         (result, surface.scene()),
-        &quality,
-        confidence_legend(&quality),
+        r.quality,
+        confidence_legend(r.quality),
     )?;
     let report = serde_json::json!({
         "settings": checkpoint.settings,
