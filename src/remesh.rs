@@ -8,7 +8,8 @@
 //! plane, to the area-weighted centroid of its incident triangles' centroids, as CGAL does) and a
 //! projection onto the input surface (closest point through Embree's BVH on the input; the normal
 //! there is interpolated from the input's vertex normals and defines the next tangent plane). h is the target edge length in mm:
-//! one value (uniform), or a per-vertex field from the input's curvature (adaptive).
+//! one value (uniform), or a per-vertex field from the input's curvature (adaptive), either
+//! optionally bounded per vertex by the caller (where its data asks for shorter edges).
 //! The output is closed, manifold and outward-oriented like the input, with the same genus.
 
 use nalgebra::{Point3, Vector3};
@@ -35,6 +36,10 @@ pub struct RemeshOptions {
     /// themselves, and along which their vertices relax; where other than two feature edges meet,
     /// the vertex is a corner and stays put. `None` (the default, as in DRT): no features.
     pub feature_angle_deg: Option<f64>,
+    /// Per input vertex, the longest target edge there, mm (it may be shorter than the adaptive
+    /// mode's smallest edge): where something other than curvature asks for shorter edges, such as data
+    /// the input does not yet fit. `None`: no bound. Its length must be the input's vertex count.
+    pub edge_bound_mm: Option<Vec<f64>>,
 }
 
 impl RemeshOptions {
@@ -46,6 +51,7 @@ impl RemeshOptions {
             relax_passes: 3,
             adaptive: None,
             feature_angle_deg: None,
+            edge_bound_mm: None,
         }
     }
 }
@@ -139,7 +145,11 @@ fn check_settings(input: &TriMesh, opts: &RemeshOptions) -> Result<(), RemeshErr
         }
     }
     // An equilateral triangle of side h has area √3/4·h²; keep the output below 50 M faces.
-    let min_h = opts.adaptive.map_or(h, |a| a.min_edge_mm.min(h));
+    let min_bound = (opts.edge_bound_mm.iter().flatten()).fold(f64::INFINITY, |m, &b| m.min(b));
+    let min_h = opts
+        .adaptive
+        .map_or(h, |a| a.min_edge_mm.min(h))
+        .min(min_bound);
     let floor = (input.area() / (3f64.sqrt() / 4.0 * MAX_FACES)).sqrt();
     if min_h < floor {
         return bad(format!(
@@ -151,6 +161,15 @@ fn check_settings(input: &TriMesh, opts: &RemeshOptions) -> Result<(), RemeshErr
     if let Some(f) = opts.feature_angle_deg {
         if !(0.0..180.0).contains(&f) {
             return bad(format!("feature angle {f}°: it must lie in [0, 180)"));
+        }
+    }
+    if let Some(bound) = &opts.edge_bound_mm {
+        if bound.len() != input.positions.len() || bound.iter().any(|b| b.is_nan() || *b <= 0.0) {
+            return bad(format!(
+                "edge bounds: {} values for {} vertices; each must be a positive length in mm",
+                bound.len(),
+                input.positions.len()
+            ));
         }
     }
     Ok(())
@@ -176,10 +195,15 @@ impl<'a> Reference<'a> {
     ) -> Result<Self, TraceError> {
         let scene = Scene::new(device, mesh, BuildMode::Static)?;
         let normals = mesh.vertex_normals();
-        let sizing = match opts.adaptive {
+        let mut sizing = match opts.adaptive {
             None => vec![opts.edge_mm; mesh.positions.len()],
             Some(a) => curvature_sizing(mesh, &normals, opts.edge_mm, a),
         };
+        if let Some(bound) = &opts.edge_bound_mm {
+            for (h, b) in sizing.iter_mut().zip(bound) {
+                *h = h.min(*b);
+            }
+        }
         Ok(Self {
             mesh,
             scene,

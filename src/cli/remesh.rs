@@ -60,6 +60,7 @@ pub fn run(a: &RemeshArgs) -> Result<()> {
         relax_passes: a.relax_passes,
         adaptive,
         feature_angle_deg: a.feature_angle_deg,
+        edge_bound_mm: None,
     };
     let t0 = Instant::now();
     let (output, _) = remesh_checked(&input, &opts, a.seed)?;

@@ -65,7 +65,8 @@ pub struct StageReport {
 /// Where a stage's wall time went, seconds, and how fast it traced.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CostProfile {
-    /// Remeshing to the stage's edge length.
+    /// Remeshing to the stage's edge length, with its sizing field (the rays that measure
+    /// where the data pulls, `sizing_pull`, included).
     pub remesh: f64,
     /// Every term of every iteration, wall time. The terms run at the same time, so their own
     /// times below overlap and add up to more (absent in reports written before they ran

@@ -176,6 +176,12 @@ pub struct Settings {
     /// The longest edge of a stage with `sizing_error`, as a multiple of its edge.
     #[serde(default = "one_f64")]
     pub sizing_max_edge: f64,
+    /// Edges where the data keeps pulling: before a stage with `sizing_error` remeshes, where
+    /// the refraction rays' mean penalty at a vertex exceeds this multiple of the area median,
+    /// its edges shrink towards the stage's by the square root of the excess
+    /// (`crate::reconstruct::pull`). 0: curvature alone.
+    #[serde(default)]
+    pub sizing_pull: f64,
     /// The silhouette term's unit of distance at the object, as a share of the current mesh's
     /// bounding-box diagonal: its loss is squared within one unit of the outline and linear
     /// beyond ([`crate::loss::silhouette`]), the same at every camera resolution. The presets'
@@ -277,6 +283,10 @@ fn check_optimizer(o: &Optimizer) -> Result<(), String> {
 /// (docs/decisions.md#edges-that-follow-the-surface).
 const SIZING_ERROR: f64 = 0.02;
 const SIZING_MAX_EDGE: f64 = 3.0;
+/// `balanced`'s and `accurate`'s edges where the data keeps pulling: at vertices whose rays'
+/// mean penalty exceeds 1.5 times the area median
+/// (docs/decisions.md#edges-where-the-data-keeps-pulling).
+const SIZING_PULL: f64 = 1.5;
 
 impl Settings {
     /// The preset's settings.
@@ -326,6 +336,7 @@ impl Settings {
             smoothing_edge: 0.0,
             sizing_error: 0.0,
             sizing_max_edge: 1.0,
+            sizing_pull: 0.0,
             silhouette_scale: 1.0 / 250.0,
             silhouette_probe: 0.03,
         };
@@ -338,6 +349,7 @@ impl Settings {
                 silhouette_views: 8,
                 sizing_error: SIZING_ERROR,
                 sizing_max_edge: SIZING_MAX_EDGE,
+                sizing_pull: SIZING_PULL,
                 ..base
             },
             Preset::Accurate => Settings {
@@ -357,6 +369,7 @@ impl Settings {
                 smoothing_edge: 0.0065,
                 sizing_error: SIZING_ERROR,
                 sizing_max_edge: SIZING_MAX_EDGE,
+                sizing_pull: SIZING_PULL,
                 ..base
             },
             // DRT's schedule, optimiser and terms. DRT sums its terms (weights 40·217.5/H² per
@@ -483,6 +496,12 @@ impl Settings {
             return bad(
                 "sizing_error",
                 "must lie in [0, 1] (a share of the stage's edge; 0: off)",
+            );
+        }
+        if !(self.sizing_pull == 0.0 || (1.0..=100.0).contains(&self.sizing_pull)) {
+            return bad(
+                "sizing_pull",
+                "must be 0 (off) or lie in [1, 100] (a multiple of the median penalty)",
             );
         }
         if !(1.0..=10.0).contains(&self.sizing_max_edge) {

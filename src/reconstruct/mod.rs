@@ -16,6 +16,7 @@ pub mod optim;
 pub mod output;
 pub mod pipeline;
 pub mod plot;
+pub mod pull;
 mod stages;
 mod terms;
 pub mod validation;

@@ -4,6 +4,7 @@
 use super::config::Settings;
 use super::coverage::Coverage;
 use super::optim::{Stepper, TailMean};
+use super::pull::data_edge_bounds;
 use super::validation::{validate_mesh, Split, ValidationRecord};
 use crate::loss::Drops;
 use crate::mesh::validate::{validate, Defect};
@@ -84,12 +85,16 @@ pub(super) fn run_next_stage(
             checkpoint.thin_part_mm.unwrap_or(f64::NAN)
         ));
     }
-    let opts = remesh_options(&phase, edge_mm);
+    let ior = checkpoint.index(inputs);
+    let mut opts = remesh_options(&phase, edge_mm);
+    if opts.adaptive.is_some() {
+        opts.edge_bound_mm = data_edge_bounds((inputs, ior), split, (mesh, edge_mm), &phase)
+            .with_context(|| format!("stage {s}: measuring where the data pulls"))?;
+    }
     let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
     let seconds_remesh = t0.elapsed().as_secs_f64();
     let stages = checkpoint.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
-    let ior = checkpoint.index(inputs);
     let (report, mean) = run_stage(
         (inputs, split, ior),
         &mut mesh,

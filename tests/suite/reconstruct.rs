@@ -705,20 +705,33 @@ fn an_unknown_refractive_index_is_estimated_and_a_wrong_one_warns() {
     );
 }
 
-/// The cut prism's exact scan (24 level views, 320×240, face normals) in a temporary folder,
-/// the true shape remeshed to 3 mm edges, and the confidence measured on `mesh(true shape)`.
-fn prism_confidence(
+/// The cut prism's exact scan (24 level views, 320×240, face normals; with `dent_mm` > 0, of
+/// the prism remeshed to 3 mm edges and dented that deep by [`dented_prism`]), loaded as
+/// `balanced` (face normals) loads it, with `mesh(the prism remeshed to 3 mm edges)` and the
+/// scan's index.
+struct PrismCase {
+    _dir: tempfile::TempDir,
+    mesh: glasscan::mesh::TriMesh,
+    inputs: glasscan::reconstruct::Inputs,
+    settings: glasscan::reconstruct::config::Settings,
+    ior: f64,
+}
+
+fn prism_case(
+    dent_mm: f64,
     mesh: impl Fn(&glasscan::mesh::TriMesh) -> glasscan::mesh::TriMesh,
-) -> (
-    glasscan::mesh::TriMesh,
-    glasscan::reconstruct::confidence::Confidence,
-) {
+) -> PrismCase {
     use glasscan::reconstruct::config::{Preset, Settings};
     let dir = tempfile::tempdir().unwrap();
     let prism = glasscan::mesh::shapes::cut_prism();
-    crate::common::decoded_scan_with_normals(dir.path(), &prism, 24, (320, 240), NormalModel::Face);
     let remeshed =
         glasscan::remesh::remesh(&prism, &glasscan::remesh::RemeshOptions::uniform(3.0)).unwrap();
+    let truth = if dent_mm > 0.0 {
+        dented_prism(&remeshed, dent_mm)
+    } else {
+        prism
+    };
+    crate::common::decoded_scan_with_normals(dir.path(), &truth, 24, (320, 240), NormalModel::Face);
     let mesh = mesh(&remeshed);
     let scan = glasscan::scan::Scan::open(dir.path()).unwrap();
     let views: Vec<usize> = (0..24).collect();
@@ -731,11 +744,29 @@ fn prism_confidence(
     let (inputs, _) =
         glasscan::reconstruct::load_inputs(&scan, &views, &settings, silhouettes, diagonal)
             .unwrap();
-    let surface = glasscan::trace::path::MeshSurface::new(&mesh, settings.normals).unwrap();
     let ior = scan.config.ior.nominal();
+    PrismCase {
+        _dir: dir,
+        mesh,
+        inputs,
+        settings,
+        ior,
+    }
+}
+
+/// [`prism_case`]'s mesh and the confidence measured on it.
+fn prism_confidence(
+    mesh: impl Fn(&glasscan::mesh::TriMesh) -> glasscan::mesh::TriMesh,
+) -> (
+    glasscan::mesh::TriMesh,
+    glasscan::reconstruct::confidence::Confidence,
+) {
+    let c = prism_case(0.0, mesh);
+    let surface = glasscan::trace::path::MeshSurface::new(&c.mesh, c.settings.normals).unwrap();
     let confidence =
-        glasscan::reconstruct::confidence::measure(&inputs, &surface, &settings, ior).unwrap();
-    (mesh, confidence)
+        glasscan::reconstruct::confidence::measure(&c.inputs, &surface, &c.settings, c.ior)
+            .unwrap();
+    (c.mesh, confidence)
 }
 
 /// The confidence field marks what the data cannot see: on the cut prism's exact scan (24
@@ -776,6 +807,33 @@ fn a_face_no_ray_or_silhouette_sees_is_marked_unconstrained() {
     assert!(summary.unconstrained_share > 0.1, "{summary:?}");
 }
 
+/// How far (mm) the dent of [`dented_prism`] moves a point of the true prism's front face (z =
+/// 17.5 mm), as a share of the dent's depth: up to 1 over a disc of radius 12 mm about its
+/// middle.
+fn prism_dent(p: &nalgebra::Point3<f64>) -> Option<f64> {
+    let r2 = (p.x / 12.0).powi(2) + (p.y / 12.0).powi(2);
+    ((p.z - 17.5).abs() < 1e-6 && r2 < 1.0).then(|| (1.0 - r2).powi(2))
+}
+
+/// `m` (the prism) with its front face dented `depth_mm` deep by [`prism_dent`].
+fn dented_prism(m: &glasscan::mesh::TriMesh, depth_mm: f64) -> glasscan::mesh::TriMesh {
+    let mut m = m.clone();
+    for p in &mut m.positions {
+        p.z -= depth_mm * prism_dent(p).unwrap_or(0.0);
+    }
+    m
+}
+
+/// A vertex of the true prism dented by more than 0.4 of the dent's depth.
+fn in_prism_dent(p: &nalgebra::Point3<f64>) -> bool {
+    prism_dent(p).is_some_and(|d| d > 0.4)
+}
+
+/// A vertex of the prism's octagon ends (x = ±35 mm), away from its chamfers.
+fn on_prism_ends(p: &nalgebra::Point3<f64>) -> bool {
+    (p.x.abs() - 35.0).abs() < 1e-6 && p.y.abs() < 15.0
+}
+
 /// Rays that disagree with the result hold it less: the prism's front face (z = 17.5 mm)
 /// dented inwards by up to 0.5 mm over its middle makes the rays through the dent miss their
 /// decoded points, and the dent's confidence (the result's `quality`) falls below half the true
@@ -783,26 +841,15 @@ fn a_face_no_ray_or_silhouette_sees_is_marked_unconstrained() {
 /// reach, keep theirs within 10 % (measured: unchanged).
 #[test]
 fn rays_that_disagree_with_the_shape_lower_its_confidence() {
-    let dent = |p: &nalgebra::Point3<f64>| {
-        let r2 = (p.x / 12.0).powi(2) + (p.y / 12.0).powi(2);
-        ((p.z - 17.5).abs() < 1e-6 && r2 < 1.0).then(|| 0.5 * (1.0 - r2).powi(2))
-    };
     let (mesh, truth) = prism_confidence(|m| m.clone());
-    let (_, dented) = prism_confidence(|m| {
-        let mut m = m.clone();
-        for p in &mut m.positions {
-            p.z -= dent(p).unwrap_or(0.0);
-        }
-        m
-    });
+    let (_, dented) = prism_confidence(|m| dented_prism(m, 0.5));
     let (q_truth, q_dented) = (truth.quality(), dented.quality());
     let mean = |q: &[f64], keep: &dyn Fn(&nalgebra::Point3<f64>) -> bool| {
         let vs: Vec<usize> = (0..q.len()).filter(|&v| keep(&mesh.positions[v])).collect();
         assert!(vs.len() > 5, "{} vertices", vs.len());
         vs.iter().map(|&v| q[v]).sum::<f64>() / vs.len() as f64
     };
-    let in_dent = |p: &nalgebra::Point3<f64>| dent(p).is_some_and(|d| d > 0.2);
-    let ends = |p: &nalgebra::Point3<f64>| (p.x.abs() - 35.0).abs() < 1e-6 && p.y.abs() < 15.0;
+    let (in_dent, ends) = (in_prism_dent, on_prism_ends);
     let (dent_truth, dent_dented) = (mean(&q_truth, &in_dent), mean(&q_dented, &in_dent));
     let (ends_truth, ends_dented) = (mean(&q_truth, &ends), mean(&q_dented, &ends));
     eprintln!("quality in the dent {dent_truth:.3e} → {dent_dented:.3e}, at the ends {ends_truth:.3e} → {ends_dented:.3e}");
@@ -814,4 +861,56 @@ fn rays_that_disagree_with_the_shape_lower_its_confidence() {
         (ends_dented / ends_truth - 1.0).abs() < 0.1,
         "{ends_truth} → {ends_dented}"
     );
+}
+
+/// Edges follow where the data keeps pulling (`balanced`'s `sizing_pull`), not only where the
+/// surface bends: the exact scan of a prism whose front face is dented 2 mm deep, measured on
+/// the undented prism (a mesh that has not yet found the dent), makes the rays through the flat
+/// face miss their decoded points, so the rule bounds the next edges at over 80 % of the dent's
+/// vertices, and at under half as large a share of the ends' (measured: 100 % against 2 %);
+/// remeshed as a `balanced` stage at 3 mm edges, whose curvature rule gives the flat face up to
+/// 9 mm edges, the dent gets over 1.5 times the vertices with the bounds than without
+/// (measured: 49 against 9).
+#[test]
+fn edges_shorten_where_the_data_keeps_pulling() {
+    use glasscan::reconstruct::pull::data_edge_bounds;
+    use glasscan::reconstruct::validation::Split;
+    let case = prism_case(2.0, |m| m.clone());
+    let settings = &case.settings;
+    assert!(settings.sizing_pull > 0.0, "balanced has the rule on");
+    let split = Split::new(&case.inputs, settings.validation_share);
+    let edge_mm = 3.0;
+    let bounds = data_edge_bounds(
+        (&case.inputs, case.ior),
+        &split,
+        (&case.mesh, edge_mm),
+        settings,
+    )
+    .unwrap()
+    .expect("the rule is on and rays reach the prism");
+    let bounded_share = |keep: fn(&nalgebra::Point3<f64>) -> bool| {
+        let vs: Vec<usize> = (0..bounds.len())
+            .filter(|&v| keep(&case.mesh.positions[v]))
+            .collect();
+        assert!(vs.len() > 5, "{} vertices", vs.len());
+        vs.iter().filter(|&&v| bounds[v].is_finite()).count() as f64 / vs.len() as f64
+    };
+    let (dent, ends) = (bounded_share(in_prism_dent), bounded_share(on_prism_ends));
+    eprintln!(
+        "bounded: {:.0} % of the dent's vertices, {:.0} % of the ends'",
+        100.0 * dent,
+        100.0 * ends
+    );
+    assert!(dent > 0.8 && dent > 2.0 * ends, "dent {dent}, ends {ends}");
+    let mut opts = glasscan::reconstruct::remesh_options(settings, edge_mm);
+    let near_dent = |m: &glasscan::mesh::TriMesh| {
+        (m.positions.iter())
+            .filter(|p| p.z > 15.0 && (p.x / 12.0).powi(2) + (p.y / 12.0).powi(2) < 1.0)
+            .count()
+    };
+    let plain = near_dent(&glasscan::remesh::remesh(&case.mesh, &opts).unwrap());
+    opts.edge_bound_mm = Some(bounds);
+    let pulled = near_dent(&glasscan::remesh::remesh(&case.mesh, &opts).unwrap());
+    eprintln!("vertices over the dent: {plain} without the bounds, {pulled} with them");
+    assert!(pulled as f64 > 1.5 * plain as f64, "{plain} → {pulled}");
 }

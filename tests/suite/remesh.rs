@@ -224,6 +224,22 @@ fn bad_input_is_refused() {
     }
     let e = remesh(&sphere, &RemeshOptions::uniform(1e-5)).unwrap_err();
     assert!(e.to_string().contains("faces"), "{e}");
+    // Per-vertex edge bounds: one per input vertex, each a positive length; a tiny one counts
+    // against the face limit like a tiny edge.
+    let n = sphere.positions.len();
+    for bound in [
+        vec![1.0; n - 1],
+        vec![0.0; n],
+        vec![f64::NAN; n],
+        vec![1e-5; n],
+    ] {
+        let opts = RemeshOptions {
+            edge_bound_mm: Some(bound),
+            ..RemeshOptions::uniform(1.0)
+        };
+        let e = remesh(&sphere, &opts).unwrap_err();
+        assert!(matches!(e, RemeshError::BadSetting(_)), "{e}");
+    }
 }
 
 #[test]
