@@ -63,8 +63,9 @@ pub fn remesh_options(phase: &Settings, edge_mm: f64) -> RemeshOptions {
     }
 }
 
-/// Remeshes `mesh` to the next stage's edge length, runs that stage on the views `split` fits
-/// and measures the result on those it holds out; records it in `checkpoint`.
+/// Remeshes `mesh` to the next stage's edge length (on a graded stage, shorter where the data
+/// keeps pulling: [`data_edge_bounds`]), runs that stage on the views `split` fits and measures
+/// the result on those it holds out; records it in `checkpoint`.
 pub(super) fn run_next_stage(
     inputs: &Inputs,
     split: &Split,
