@@ -18,6 +18,7 @@ use super::terms::{add_refraction, add_silhouettes, Sample};
 use super::Inputs;
 use crate::loss::Accumulator;
 use crate::trace::path::MeshSurface;
+use crate::util::weighted_median;
 
 /// The fewest compared refraction rays at a vertex's faces for the vertex to count as
 /// constrained by refraction: a ray pins a point only along its path, a few from different
@@ -107,21 +108,17 @@ impl Confidence {
             a / total
         };
         let density = self.rays_per_mm2();
-        let mut order: Vec<usize> = (0..density.len()).collect();
-        order.sort_by(|&a, &b| density[a].total_cmp(&density[b]));
-        let mut seen = 0.0;
-        let median = order
-            .iter()
-            .find(|&&v| {
-                seen += self.area_mm2[v];
-                seen >= 0.5 * total
-            })
-            .map_or(0.0, |&v| density[v]);
+        let median = weighted_median(
+            density
+                .into_iter()
+                .zip(self.area_mm2.iter().copied())
+                .collect(),
+        );
         ConfidenceSummary {
             refraction_share: share(Support::Refraction),
             silhouette_only_share: share(Support::SilhouetteOnly),
             unconstrained_share: share(Support::Neither),
-            median_rays_per_mm2: median,
+            median_rays_per_mm2: median.unwrap_or(0.0),
             min_rays: MIN_RAYS,
         }
     }

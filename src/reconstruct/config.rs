@@ -178,8 +178,8 @@ pub struct Settings {
     pub sizing_max_edge: f64,
     /// Edges where the data keeps pulling: before a stage with `sizing_error` remeshes, where
     /// the refraction rays' mean penalty at a vertex exceeds this multiple of the area median,
-    /// its edges shrink towards the stage's by the square root of the excess
-    /// (`crate::reconstruct::pull`). 0: curvature alone.
+    /// its edges shrink by the excess (its mean edge × this multiple of the median over its mean
+    /// penalty), never below the stage's edge (`crate::reconstruct::pull`). 0: curvature alone.
     #[serde(default)]
     pub sizing_pull: f64,
     /// The silhouette term's unit of distance at the object, as a share of the current mesh's

@@ -24,6 +24,7 @@ use crate::loss::Accumulator;
 use crate::mesh::TriMesh;
 use crate::trace::path::MeshSurface;
 use crate::trace::BuildMode;
+use crate::util::weighted_median;
 
 /// Every how many of the fitted views the pass traces: 72 views, 7 held out, give 17 views
 /// spread around the turntable, about four iterations' worth of `balanced`'s rays.
@@ -45,7 +46,8 @@ pub fn data_edge_bounds(
     }
     let means = mean_penalties((inputs, ior), split, mesh, settings)?;
     let areas = mesh.vertex_areas();
-    let Some(median) = area_median(&means, &areas) else {
+    let known = (means.iter().zip(&areas)).filter_map(|(m, &a)| m.map(|m| (m, a)));
+    let Some(median) = weighted_median(known.collect()) else {
         return Ok(None);
     };
     let target = settings.sizing_pull * median;
@@ -81,20 +83,6 @@ fn mean_penalties(
         .collect())
 }
 
-/// The area-weighted median of the defined `values` (`areas` per vertex, mm²).
-fn area_median(values: &[Option<f64>], areas: &[f64]) -> Option<f64> {
-    let mut known: Vec<(f64, f64)> = (values.iter().zip(areas))
-        .filter_map(|(v, &a)| v.map(|v| (v, a)))
-        .collect();
-    known.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let total: f64 = known.iter().map(|k| k.1).sum();
-    let mut seen = 0.0;
-    known.iter().find_map(|&(v, a)| {
-        seen += a;
-        (seen >= 0.5 * total).then_some(v)
-    })
-}
-
 /// Per vertex, the mean length of its edges, mm (0 for an isolated vertex).
 fn mean_edge_lengths(mesh: &TriMesh) -> Vec<f64> {
     let n = mesh.positions.len();
@@ -110,17 +98,4 @@ fn mean_edge_lengths(mesh: &TriMesh) -> Vec<f64> {
         .zip(&count)
         .map(|(s, &c)| if c > 0 { s / c as f64 } else { 0.0 })
         .collect()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_area_median_weighs_vertices_by_area_and_skips_unknowns() {
-        let values = [Some(1.0), None, Some(3.0), Some(2.0)];
-        assert_eq!(area_median(&values, &[1.0, 100.0, 1.0, 1.0]), Some(2.0));
-        assert_eq!(area_median(&values, &[1.0, 100.0, 5.0, 1.0]), Some(3.0));
-        assert_eq!(area_median(&[None, None], &[1.0, 1.0]), None);
-    }
 }

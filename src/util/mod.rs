@@ -1,4 +1,4 @@
-//! Small helpers shared by every stage: atomic file, folder and image output, a median, the
+//! Small helpers shared by every stage: atomic file, folder and image output, medians, the
 //! scattering of a user's seed.
 
 pub mod atomic;
@@ -29,10 +29,36 @@ pub fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// The weighted median of `(value, weight)` pairs: the first value, in ascending order (ties in
+/// the given order), at which the weights reach half their sum; `None` for no pairs.
+pub fn weighted_median(mut pairs: Vec<(f64, f64)>) -> Option<f64> {
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let half = 0.5 * pairs.iter().map(|p| p.1).sum::<f64>();
+    let mut seen = 0.0;
+    pairs.into_iter().find_map(|(v, w)| {
+        seen += w;
+        (seen >= half).then_some(v)
+    })
+}
+
 /// A user's `--seed` scattered over the 64-bit integers before small stream numbers (a view, a
 /// stage, an iteration) are mixed into it: multiplied by an odd constant, a bijection that keeps
 /// 0 at 0, so seed 0 draws what it always drew. Mixed in bare, seeds s and s + 1 would share
 /// their streams shifted by one (view k + 1 of one, view k of the other).
 pub fn scatter_seed(seed: u64) -> u64 {
     seed.wrapping_mul(0x9e37_79b9_7f4a_7c15)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_weighted_median_is_where_the_weights_reach_half() {
+        let pairs = |w: [f64; 3]| vec![(1.0, w[0]), (3.0, w[1]), (2.0, w[2])];
+        assert_eq!(weighted_median(pairs([1.0, 1.0, 1.0])), Some(2.0));
+        assert_eq!(weighted_median(pairs([1.0, 5.0, 1.0])), Some(3.0));
+        assert_eq!(weighted_median(pairs([5.0, 1.0, 1.0])), Some(1.0));
+        assert_eq!(weighted_median(Vec::new()), None);
+    }
 }
