@@ -2,8 +2,9 @@
 //! against the bare Embree queries the same evaluation makes.
 //!
 //! One evaluation = for every view, trace all object pixels with a decoded point through the
-//! mesh (batched per interface), recompute each kept path in f64, differentiate it backwards,
-//! and sum the gradients (then through the vertex normals, for that model). The yardstick replays
+//! mesh (batched per interface, each hit and refraction computed in f64 on the triangle Embree
+//! found), differentiate each kept path backwards, and sum the gradients (then through the
+//! vertex normals, for that model). The yardstick replays
 //! exactly the ray batches that evaluation sent to Embree, in the same mode (packets for the
 //! camera rays), through Embree alone (closest hit, no f64 refinement, nothing done with the
 //! hits).
@@ -53,6 +54,15 @@ struct Recording<'a> {
     batches: Mutex<Vec<(Vec<Ray>, bool)>>,
 }
 
+impl Recording<'_> {
+    fn record(&self, rays: &[Ray], coherent: bool) {
+        self.batches
+            .lock()
+            .expect("not poisoned")
+            .push((rays.to_vec(), coherent));
+    }
+}
+
 impl Surface for Recording<'_> {
     fn intersect_serial(
         &self,
@@ -60,11 +70,17 @@ impl Surface for Recording<'_> {
         out: &mut [Option<SurfaceHit>],
         coherent: bool,
     ) -> Result<(), TraceError> {
-        self.batches
-            .lock()
-            .expect("not poisoned")
-            .push((rays.to_vec(), coherent));
+        self.record(rays, coherent);
         self.inner.intersect_serial(rays, out, coherent)
+    }
+    fn first_elements(
+        &self,
+        rays: &[Ray],
+        out: &mut [Option<u32>],
+        coherent: bool,
+    ) -> Result<(), TraceError> {
+        self.record(rays, coherent);
+        self.inner.first_elements(rays, out, coherent)
     }
     fn offset(&self) -> f64 {
         self.inner.offset()

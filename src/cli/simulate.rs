@@ -201,11 +201,15 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
             a.out.join("calibration").join("setup.json").display()
         );
     }
-    outln!(
-        "median footprint of a camera pixel on the monitor: {:.1} monitor pixels through the glass (2 refractions), {:.2} directly",
-        r.median_footprint_px,
-        r.direct_footprint_px
-    );
+    if a.spp < 2 {
+        outln!("median footprint of a camera pixel on the monitor: not measured (it needs --spp 2 or more)");
+    } else {
+        outln!(
+            "median footprint of a camera pixel on the monitor: {:.1} monitor pixels through the glass (2 refractions), {:.2} directly",
+            r.median_footprint_px,
+            r.direct_footprint_px
+        );
+    }
     if a.transport == Transport::Physical {
         outln!(
             "ghosts: {:.2} % of the light the object pixels receive came through a reflection ({:.2} % more was dropped: trapped or fainter than 1e-4)",

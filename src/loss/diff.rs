@@ -137,7 +137,9 @@ pub struct Snell {
 pub enum SnellFailure {
     /// The normal faces away from the ray.
     Grazing,
-    /// Total internal reflection, or so close to it that cos θt ≈ 0 (derivative unbounded).
+    /// Total internal reflection.
+    Total,
+    /// So close to total internal reflection that cos θt ≈ 0 (derivative unbounded).
     Critical,
 }
 
@@ -153,7 +155,7 @@ pub fn snell(d: &V3, n: &V3, eta: f64) -> Result<Snell, SnellFailure> {
     }
     let sin2_t = eta * eta * (1.0 - cos_i * cos_i);
     if sin2_t >= 1.0 {
-        return Err(SnellFailure::Critical);
+        return Err(SnellFailure::Total);
     }
     let cos_t = (1.0 - sin2_t).sqrt();
     if cos_t < MIN_COS_T {

@@ -2,14 +2,13 @@
 //! modelled path through the current mesh should reach Q. A pixel is modelled by its centre ray
 //! or by the mean residual of a grid of rays over its area (its footprint).
 //!
-//! Per view, Embree traces every pixel ray through the mesh in batches, recording the triangles
-//! it refracts at ([`trace_chunk`]). Then, per pixel and in parallel, the path is recomputed in
-//! f64 from those triangles (ray–plane hits, normals, Snell) and differentiated backwards by hand
-//! ([`super::diff`]), into per-thread gradient buffers that are summed at the end. Pixels whose
+//! Per view and chunk of pixels, the rays are traced one interface at a time ([`trace_forward`]):
+//! Embree finds the triangle each ray meets, and the hit and the refraction there are computed
+//! once, in f64, on that triangle (ray–plane hit, normal, Snell); the same values start the next
+//! ray and serve the gradient. Then, per pixel, the path is differentiated backwards by hand
+//! ([`super::diff`]), into per-chunk gradient entries that are summed in chunk order. Pixels whose
 //! modelled path cannot be compared (no hit, TIR, wrong number of refractions, missing the
 //! monitor, a derivative that is unbounded or not finite) are dropped and counted by reason.
-
-use std::ops::Range;
 
 use arrayvec::ArrayVec;
 use nalgebra::{Point3, Vector2, Vector3};
@@ -23,9 +22,7 @@ use super::diff::{
 };
 use super::{Accumulator, Contributions, Drops, Robust};
 use crate::mesh::TriMesh;
-use crate::trace::path::{
-    trace_chunk, NormalModel, PathEnd, PathSettings, Surface, Trail, MAX_TRAIL, TRACE_CHUNK,
-};
+use crate::trace::path::{restart_origin, NormalModel, Surface, MAX_TRAIL, TRACE_CHUNK};
 use crate::trace::{Ray, TraceError};
 
 type V3 = Vector3<f64>;
@@ -185,19 +182,17 @@ impl ViewTargets {
     }
 }
 
-/// The path of one pixel recomputed in f64, with what its derivative needs.
+/// One interface of a path, computed in f64, with what its derivative needs (the triangle's
+/// corners and vertex normals are read again from the mesh).
 #[derive(Clone, Debug)]
 struct Interface {
-    tri: [Point3<f64>; 3],
     verts: [u32; 3],
     dir_in: V3,
     hit: PlaneHit,
     entering: bool,
-    /// Vertex-normal model: barycentrics, the interpolated (unnormalised) normal's length and
-    /// the three vertex normals.
+    /// Vertex-normal model: barycentrics and the interpolated (unnormalised) normal's length.
     bary: (f64, f64),
     interp_norm: f64,
-    vnormals: [V3; 3],
     /// Unit normal facing the incident side.
     n: V3,
     snell: Snell,
@@ -261,10 +256,11 @@ pub fn pixel_gradient(
 pub type FootprintRay<'a> = (V3, Result<&'a [u32], DropReason>);
 
 /// The loss and gradient of pixel `px` from the rays of its footprint (into `out`, overwritten;
-/// reused across pixels by the hot loop). The pixel's modelled residual is the mean of its
-/// rays' residuals (for the screen form: the footprint's mean monitor point against the decoded
-/// point), over the rays whose paths can be compared; the pixel is dropped, with the first
-/// ray's reason, when none can. One ray is the centre-ray term.
+/// reused across pixels by the hot loop), each path recomputed along the triangles it refracted
+/// at. The pixel's modelled residual is the mean of its rays' residuals (for the screen form:
+/// the footprint's mean monitor point against the decoded point), over the rays whose paths can
+/// be compared; the pixel is dropped, with the first ray's reason, when none can. One ray is the
+/// centre-ray term.
 pub fn footprint_gradient_into(
     mesh: &MeshState,
     s: &RefractionSettings,
@@ -275,55 +271,61 @@ pub fn footprint_gradient_into(
 ) -> Result<(), DropReason> {
     let mut interfaces = std::mem::take(&mut out.interfaces);
     interfaces.clear();
-    let r = footprint_gradient(mesh, s, view, px, rays, &mut interfaces, out);
+    let min_cos = px.min_cos(s);
+    let paths: ArrayVec<Result<Forward, DropReason>, MAX_FOOTPRINT_RAYS> = rays
+        .iter()
+        .take(MAX_FOOTPRINT_RAYS)
+        .map(|(dir, prims)| {
+            prims.and_then(|p| forward(mesh, s, min_cos, &view.eye, dir, p, &mut interfaces))
+        })
+        .collect();
+    let r = pixel_from_paths(mesh, s, view, px, (&paths, &interfaces), out);
     out.interfaces = interfaces;
     r
 }
 
-/// [`footprint_gradient_into`] with the paths' interfaces recorded into `interfaces`.
-fn footprint_gradient(
+/// The loss and gradient of pixel `px` (into `out`, overwritten) from its footprint's `paths`
+/// forward, their interfaces in `interfaces`, as [`footprint_gradient_into`] describes.
+fn pixel_from_paths(
     mesh: &MeshState,
     s: &RefractionSettings,
     view: &ViewTargets,
     px: &PixelTarget,
-    rays: &[FootprintRay],
-    interfaces: &mut Vec<Interface>,
+    (paths, interfaces): (&[Result<Forward, DropReason>], &[Interface]),
     out: &mut PixelGradient,
 ) -> Result<(), DropReason> {
-    let mut paths: ArrayVec<(Forward, Exit), MAX_FOOTPRINT_RAYS> = ArrayVec::new();
+    let mut compared: ArrayVec<(&Forward, Exit), MAX_FOOTPRINT_RAYS> = ArrayVec::new();
     let mut first_drop = None;
-    let min_cos = px.min_cos(s);
-    for (dir, prims) in rays.iter().take(MAX_FOOTPRINT_RAYS) {
-        let path = (*prims).and_then(|p| {
-            let f = forward(mesh, s, min_cos, &view.eye, dir, p, interfaces)?;
-            let e = exit_residual(s, view, &px.target, &f.o, &f.d)?;
-            Ok((f, e))
-        });
-        match path {
-            Ok(p) => paths.push(p),
+    for path in paths.iter().take(MAX_FOOTPRINT_RAYS) {
+        let exit = path
+            .as_ref()
+            .map_err(|r| *r)
+            .and_then(|f| exit_residual(s, view, &px.target, &f.o, &f.d).map(|e| (f, e)));
+        match exit {
+            Ok(p) => compared.push(p),
             Err(r) => _ = first_drop.get_or_insert(r),
         }
     }
-    if paths.is_empty() {
+    if compared.is_empty() {
         return Err(first_drop.unwrap_or(DropReason::NoHit));
     }
-    let m = paths.len() as f64;
-    let mean = paths.iter().map(|(_, e)| e.r).sum::<V3>() / m;
+    let m = compared.len() as f64;
+    let mean = compared.iter().map(|(_, e)| e.r).sum::<V3>() / m;
     let (loss, dr2) = s.robust.apply(mean.norm_squared());
     let gr = mean * (2.0 * dr2 * px.weight / m);
-    let side = if rays.len() > 1 { s.footprint } else { 1 };
-    let (bit_loss, bit_grads) = bit_term(s, view, px, &paths, side);
+    let side = if paths.len() > 1 { s.footprint } else { 1 };
+    let (bit_loss, bit_grads) = bit_term(s, view, px, &compared, side);
     out.grad.clear();
     out.ngrad.clear();
     out.ior = 0.0;
-    for (k, (f, e)) in paths.iter().enumerate() {
+    for (k, (f, e)) in compared.iter().enumerate() {
         let (mut gp, mut gd) = exit_adjoint(s, view, e, &f.d, &gr);
         if let Some(Some((bp, bd))) = bit_grads.get(k) {
             gp += bp;
             gd += bd;
         }
-        for it in interfaces[f.chain.clone()].iter().rev() {
-            (gp, gd) = interface_adjoint(mesh, it, &gp, &gd, out);
+        for &i in f.chain.iter().rev() {
+            (gp, gd) = interface_adjoint(mesh, &interfaces[i as usize], &gp, &gd, out);
         }
     }
     let finite = (loss + bit_loss).is_finite()
@@ -351,7 +353,7 @@ fn bit_term(
     s: &RefractionSettings,
     view: &ViewTargets,
     px: &PixelTarget,
-    paths: &[(Forward, Exit)],
+    paths: &[(&Forward, Exit)],
     side: u32,
 ) -> (f64, ExitGradients) {
     let mut grads = ExitGradients::new();
@@ -406,10 +408,10 @@ fn screen_adjoint(view: &ViewTargets, sdist: f64, dn: f64, d: &V3, gq: &V3) -> (
     (gp, gd)
 }
 
-/// A ray's path recomputed forward: where its interfaces are in the footprint's list, and the
-/// exit ray (origin, unit direction).
+/// A ray's path recomputed forward: where its interfaces are in the footprint's (or the
+/// chunk's) list, in order, and the exit ray (origin, unit direction).
 struct Forward {
-    chain: Range<usize>,
+    chain: ArrayVec<u32, MAX_TRAIL>,
     o: Point3<f64>,
     d: V3,
 }
@@ -428,18 +430,92 @@ fn forward(
     if prims.len() > MAX_TRAIL {
         return Err(DropReason::RefractionCount);
     }
-    let start = interfaces.len();
-    let (mut o, mut d) = (*eye, *dir);
+    let mut f = Forward {
+        chain: ArrayVec::new(),
+        o: *eye,
+        d: *dir,
+    };
     for &prim in prims {
-        let it = refract_at(mesh, s, min_cos, &o, &d, prim)?;
-        (o, d) = (it.hit.point, it.snell.out / it.out_norm);
+        let it = refract_at(mesh, s, min_cos, &f.o, &f.d, prim)?;
+        f.pass(it, interfaces);
+    }
+    Ok(f)
+}
+
+impl Forward {
+    /// Continues the path through interface `it`, appended to `interfaces`.
+    fn pass(&mut self, it: Interface, interfaces: &mut Vec<Interface>) {
+        (self.o, self.d) = (it.hit.point, it.snell.out / it.out_norm);
+        self.chain.push(interfaces.len() as u32);
         interfaces.push(it);
     }
-    Ok(Forward {
-        chain: start..interfaces.len(),
-        o,
-        d,
-    })
+}
+
+/// Traces the rays from `eye` along unit `dirs` through `surface` (which holds `mesh`) one
+/// interface at a time for them all (each interface one batch for Embree, the first in
+/// packets): Embree finds the triangle, and the hit and the refraction there are computed in
+/// f64 on it ([`refract_at`]), once, for the trace and for the gradient. Ray `i` is dropped
+/// where it meets an interface with cos θi or cos θt below `min_cos(i)`, and where its path
+/// leaves with a refraction count the settings exclude. The interfaces are appended to
+/// `interfaces`.
+fn trace_forward(
+    surface: &dyn Surface,
+    mesh: &MeshState,
+    s: &RefractionSettings,
+    (eye, dirs): (&Point3<f64>, &[V3]),
+    min_cos: impl Fn(usize) -> f64,
+    interfaces: &mut Vec<Interface>,
+) -> Result<Vec<Result<Forward, DropReason>>, TraceError> {
+    let max = (s.max_refractions as usize).min(MAX_TRAIL);
+    let offset = surface.offset();
+    let mut paths: Vec<Result<Forward, DropReason>> = dirs
+        .iter()
+        .map(|d| {
+            Ok(Forward {
+                chain: ArrayVec::new(),
+                o: *eye,
+                d: *d,
+            })
+        })
+        .collect();
+    let mut active: Vec<usize> = (0..dirs.len()).collect();
+    let mut batch: Vec<Ray> = dirs.iter().map(|d| Ray::new(*eye, *d)).collect();
+    let mut next_batch = Vec::with_capacity(batch.len());
+    let mut prims = vec![None; batch.len()];
+    let mut first = true;
+    while !active.is_empty() {
+        let prims = &mut prims[..batch.len()];
+        surface.first_elements(&batch, prims, first)?;
+        first = false;
+        next_batch.clear();
+        let mut kept = 0;
+        for (k, prim) in prims.iter().enumerate() {
+            let i = active[k];
+            let Ok(f) = &mut paths[i] else {
+                unreachable!("only live paths are active")
+            };
+            let step = match *prim {
+                None if f.chain.is_empty() => Err(DropReason::NoHit),
+                None if f.chain.len() % 2 == 1 => Err(DropReason::RefractionCount),
+                None => continue,
+                Some(_) if f.chain.len() == max => Err(DropReason::RefractionCount),
+                Some(p) => refract_at(mesh, s, min_cos(i), &f.o, &f.d, p),
+            };
+            match step {
+                Err(r) => paths[i] = Err(r),
+                Ok(it) => {
+                    let normal = it.hit.n / it.hit.n.norm();
+                    f.pass(it, interfaces);
+                    next_batch.push(Ray::new(restart_origin(&f.o, &f.d, &normal, offset), f.d));
+                    active[kept] = i;
+                    kept += 1;
+                }
+            }
+        }
+        active.truncate(kept);
+        std::mem::swap(&mut batch, &mut next_batch);
+    }
+    Ok(paths)
 }
 
 /// Forward through one interface: the ray (o, d) meets triangle `prim`'s plane and refracts
@@ -463,12 +539,12 @@ fn refract_at(
         (s.ior / s.ior_air, -1.0)
     };
     let deta_dior = -sign * eta / s.ior;
-    let (mut bary, mut interp_norm, mut vnormals) = ((0.0, 0.0), 0.0, [V3::zeros(); 3]);
+    let (mut bary, mut interp_norm) = ((0.0, 0.0), 0.0);
     let outward = match mesh.vertex_normals {
         None => hit.n / hit.n.norm(),
         Some(vn) => {
             bary = barycentric(&hit.point, &tri, &hit.n);
-            vnormals = verts.map(|v| vn[v as usize]);
+            let vnormals = verts.map(|v| vn[v as usize]);
             let m =
                 vnormals[0] * (1.0 - bary.0 - bary.1) + vnormals[1] * bary.0 + vnormals[2] * bary.1;
             interp_norm = m.norm();
@@ -478,6 +554,7 @@ fn refract_at(
     let n = outward * sign;
     let sn = snell(d, &n, eta).map_err(|e| match e {
         SnellFailure::Grazing => DropReason::Grazing,
+        SnellFailure::Total => DropReason::TotalInternalReflection,
         SnellFailure::Critical => DropReason::NearCritical,
     })?;
     if sn.cos_i < min_cos {
@@ -487,14 +564,12 @@ fn refract_at(
         return Err(DropReason::NearCritical);
     }
     Ok(Interface {
-        tri,
         verts,
         dir_in: *d,
         hit,
         entering,
         bary,
         interp_norm,
-        vnormals,
         n,
         out_norm: sn.out.norm(),
         snell: sn,
@@ -560,6 +635,7 @@ fn interface_adjoint(
     snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
     out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, &gout) * it.deta_dior;
     let g_outward = if it.entering { gn } else { -gn };
+    let tri = it.verts.map(|v| mesh.positions[v as usize]);
     let mut gtri = [V3::zeros(); 3];
     let mut gnormal = V3::zeros();
     let mut gpoint = *gp;
@@ -568,17 +644,17 @@ fn interface_adjoint(
             gnormal +=
                 normalize_adjoint(&(it.hit.n / it.hit.n.norm()), it.hit.n.norm(), &g_outward);
         }
-        Some(_) => {
+        Some(vn) => {
             let (w1, w2) = it.bary;
             let w = [1.0 - w1 - w2, w1, w2];
             let m_unit = if it.entering { it.n } else { -it.n };
             let gm = normalize_adjoint(&m_unit, it.interp_norm, &g_outward);
             out.ngrad
                 .extend(it.verts.iter().zip(w).map(|(&v, wk)| (v, gm * wk)));
-            let gw: [f64; 3] = std::array::from_fn(|k| gm.dot(&it.vnormals[k]));
+            let gw = it.verts.map(|v| gm.dot(&vn[v as usize]));
             barycentric_adjoint(
                 &it.hit.point,
-                &it.tri,
+                &tri,
                 &it.hit.n,
                 (w1, w2),
                 (gw[1] - gw[0], gw[2] - gw[0]),
@@ -590,7 +666,7 @@ fn interface_adjoint(
     }
     let mut go = V3::zeros();
     plane_hit_adjoint(
-        &it.hit, &it.dir_in, &it.tri, &gpoint, &gnormal, &mut go, &mut gdin, &mut gtri,
+        &it.hit, &it.dir_in, &tri, &gpoint, &gnormal, &mut go, &mut gdin, &mut gtri,
     );
     out.grad.extend(it.verts.into_iter().zip(gtri));
     (go, gdin)
@@ -607,11 +683,6 @@ pub fn add_view(
     view: &ViewTargets,
     acc: &mut Accumulator,
 ) -> Result<(), TraceError> {
-    let settings = PathSettings {
-        ior: s.ior,
-        ior_air: s.ior_air,
-        max_refractions: s.max_refractions,
-    };
     let mesh = MeshState {
         positions: &mesh.positions,
         faces: &mesh.faces,
@@ -621,19 +692,27 @@ pub fn add_view(
         Some(_) => footprint_offsets(s.footprint.clamp(1, MAX_FOOTPRINT)),
         None => vec![(0.0, 0.0)],
     };
-    // Trace and differentiate chunk by chunk, each on one thread, so the chunk's paths stay in
-    // cache between the two; then sum the chunks in order.
+    let per_pixel = offsets.len();
+    // Trace and differentiate chunk by chunk (about TRACE_CHUNK rays), each on one thread, so
+    // the chunk's paths stay in cache between the two; then sum the chunks in order.
     let counting = !acc.penalty.is_empty();
     let chunks: Vec<Contributions> = view
         .pixels
-        .par_chunks(TRACE_CHUNK)
+        .par_chunks((TRACE_CHUNK / per_pixel).max(1))
         .map(|chunk| -> Result<Contributions, TraceError> {
             let dirs = footprint_dirs(view, chunk, &offsets);
-            let rays: Vec<Ray> = dirs.iter().map(|d| Ray::new(view.eye, *d)).collect();
-            let mut trails = vec![Trail::default(); rays.len()];
-            let paths = trace_chunk(surface, &rays, &settings, Some(&mut trails))?;
+            let mut interfaces = Vec::with_capacity(2 * dirs.len());
+            let min_cos = |i: usize| chunk[i / per_pixel].min_cos(s);
+            let paths = trace_forward(
+                surface,
+                &mesh,
+                s,
+                (&view.eye, &dirs),
+                min_cos,
+                &mut interfaces,
+            )?;
             // Three vertices per refraction, each with a normal entry for vertex normals.
-            let entries = 3 * s.max_refractions as usize * rays.len();
+            let entries = 3 * s.max_refractions as usize * dirs.len();
             let normal_entries = if mesh.vertex_normals.is_some() {
                 entries
             } else {
@@ -641,15 +720,8 @@ pub fn add_view(
             };
             let mut c = Contributions::with_capacity(entries, normal_entries);
             let mut g = PixelGradient::default();
-            let mut footprint = Vec::with_capacity(offsets.len());
-            for (k, px) in chunk.iter().enumerate() {
-                let part = k * offsets.len()..(k + 1) * offsets.len();
-                footprint.clear();
-                footprint.extend(part.map(|i| {
-                    let ok = classify(&paths[i].end, paths[i].refractions, s.max_refractions);
-                    (dirs[i], ok.map(|()| trails[i].prims()))
-                }));
-                match footprint_gradient_into(&mesh, s, view, px, &footprint, &mut g) {
+            for (px, part) in chunk.iter().zip(paths.chunks(per_pixel)) {
+                match pixel_from_paths(&mesh, s, view, px, (part, &interfaces), &mut g) {
                     Ok(()) => {
                         c.push_pixel(&g, px.weight);
                         if counting {
@@ -681,17 +753,6 @@ fn footprint_dirs(view: &ViewTargets, pixels: &[PixelTarget], offsets: &[(f64, f
             .flat_map(|p| offsets.iter().map(move |&o| axes.offset(&p.dir, o)))
             .collect(),
         _ => pixels.iter().map(|p| p.dir).collect(),
-    }
-}
-
-/// Whether a traced path is one the term compares.
-fn classify(end: &PathEnd, refractions: u32, max: u32) -> Result<(), DropReason> {
-    match end {
-        PathEnd::Left if refractions == 0 => Err(DropReason::NoHit),
-        PathEnd::Left if refractions.is_multiple_of(2) && refractions <= max => Ok(()),
-        PathEnd::Left | PathEnd::TooManyInterfaces => Err(DropReason::RefractionCount),
-        PathEnd::TotalInternalReflection => Err(DropReason::TotalInternalReflection),
-        PathEnd::GrazingNormal => Err(DropReason::Grazing),
     }
 }
 

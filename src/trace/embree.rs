@@ -242,9 +242,37 @@ impl Scene {
         coherent: bool,
     ) -> Result<(), TraceError> {
         assert_eq!(rays.len(), out.len(), "one output per ray");
+        self.query_serial(rays, coherent, |i, h| {
+            out[i] = (h.prim != ffi::GS_INVALID_ID).then(|| self.refine(&rays[i], h));
+        })
+    }
+
+    /// The triangle each of `rays` meets first (`None`: none), on the calling thread, without
+    /// the hit's geometry: for callers that recompute it on that triangle themselves. As
+    /// [`Self::intersect_serial`] otherwise.
+    pub fn first_prims_serial(
+        &self,
+        rays: &[Ray],
+        out: &mut [Option<u32>],
+        coherent: bool,
+    ) -> Result<(), TraceError> {
+        assert_eq!(rays.len(), out.len(), "one output per ray");
+        self.query_serial(rays, coherent, |i, h| {
+            out[i] = (h.prim != ffi::GS_INVALID_ID).then_some(h.prim);
+        })
+    }
+
+    /// Embree's closest hits of `rays`, [`CHUNK`] at a time, handed to `each` with the ray's
+    /// index.
+    fn query_serial(
+        &self,
+        rays: &[Ray],
+        coherent: bool,
+        mut each: impl FnMut(usize, &ffi::gs_hit),
+    ) -> Result<(), TraceError> {
         let mut raw_rays = Vec::with_capacity(CHUNK.min(rays.len()));
         let mut raw_hits = vec![ffi::gs_hit::default(); CHUNK.min(rays.len())];
-        for (rc, oc) in rays.chunks(CHUNK).zip(out.chunks_mut(CHUNK)) {
+        for (c, rc) in rays.chunks(CHUNK).enumerate() {
             raw_rays.clear();
             raw_rays.extend(rc.iter().map(Ray::raw));
             let hits = &mut raw_hits[..rc.len()];
@@ -261,8 +289,8 @@ impl Scene {
             if status != 0 {
                 return Err(last_error("Embree: ray query failed"));
             }
-            for ((o, h), ray) in oc.iter_mut().zip(hits.iter()).zip(rc) {
-                *o = (h.prim != ffi::GS_INVALID_ID).then(|| self.refine(ray, h));
+            for (k, h) in hits.iter().enumerate() {
+                each(c * CHUNK + k, h);
             }
         }
         Ok(())

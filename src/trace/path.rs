@@ -37,6 +37,22 @@ pub trait Surface: Sync {
         out: &mut [Option<SurfaceHit>],
         coherent: bool,
     ) -> Result<(), TraceError>;
+    /// The element each ray meets first (`None`: none), on the calling thread, without the
+    /// hit's geometry: for callers that recompute the hit on that element themselves.
+    /// `coherent` as for [`Self::intersect_serial`].
+    fn first_elements(
+        &self,
+        rays: &[Ray],
+        out: &mut [Option<u32>],
+        coherent: bool,
+    ) -> Result<(), TraceError> {
+        let mut hits = vec![None; rays.len()];
+        self.intersect_serial(rays, &mut hits, coherent)?;
+        for (o, h) in out.iter_mut().zip(&hits) {
+            *o = h.map(|h| h.prim);
+        }
+        Ok(())
+    }
     /// How far a ray restarting at a hit point is moved along its new direction (mm).
     fn offset(&self) -> f64;
 }
@@ -156,6 +172,15 @@ impl Surface for MeshSurface {
             *o = h.as_ref().map(|h| self.surface_hit(h));
         }
         Ok(())
+    }
+
+    fn first_elements(
+        &self,
+        rays: &[Ray],
+        out: &mut [Option<u32>],
+        coherent: bool,
+    ) -> Result<(), TraceError> {
+        self.scene.first_prims_serial(rays, out, coherent)
     }
 
     fn offset(&self) -> f64 {
@@ -336,12 +361,23 @@ fn step(p: &Path, h: &SurfaceHit, s: &PathSettings, offset: f64) -> Path {
             Path {
                 end: PathEnd::Left,
                 refractions: p.refractions + 1,
-                // Along the ray, far enough to be `offset` off the surface's plane even when the
-                // ray leaves it at a grazing angle (the origin stays on the exact path).
-                origin: h.point + dir * (offset / dir.dot(&h.geometric_normal).abs().max(1e-3)),
+                origin: restart_origin(&h.point, &dir, &h.geometric_normal, offset),
                 dir,
                 transmittance: p.transmittance * r.transmittance,
             }
         }
     }
+}
+
+/// Where a ray leaving the surface point `point` along unit `dir` restarts: moved along the ray
+/// far enough to be `offset` (mm) off the surface's plane (unit normal `normal`) even when it
+/// leaves at a grazing angle, so that Embree does not find the same surface again (the origin
+/// stays on the exact path).
+pub fn restart_origin(
+    point: &Point3<f64>,
+    dir: &Vector3<f64>,
+    normal: &Vector3<f64>,
+    offset: f64,
+) -> Point3<f64> {
+    point + dir * (offset / dir.dot(normal).abs().max(1e-3))
 }
