@@ -142,12 +142,13 @@ pub struct Checkpoint {
     /// checkpoints that predate it: the scan's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ior: Option<crate::scan::Ior>,
-    /// An index pass's current estimate of the index, which its next stage runs at
-    /// ([`super::index`]); `None`: the given index (or the range's middle, before the first).
+    /// A run with an unknown index: the last stage's estimate, which the next stage starts from
+    /// ([`super::index`]); `None`: the given index (before the first stage of an unknown one,
+    /// [`super::Inputs::ior_start`] or the range's middle).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ior_estimate: Option<f64>,
-    /// An index pass's stages so far: the index each ran at and the one the held-out views fit
-    /// best with its mesh.
+    /// A run with an unknown index: per stage so far, the index it started from and its
+    /// estimate.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub ior_fits: Vec<[f64; 2]>,
 }
@@ -155,7 +156,7 @@ pub struct Checkpoint {
 impl Checkpoint {
     /// The refractive index the next stage runs at.
     pub fn index(&self, inputs: &super::Inputs) -> f64 {
-        self.ior_estimate.unwrap_or_else(|| inputs.ior.nominal())
+        (self.ior_estimate.or(inputs.ior_start)).unwrap_or_else(|| inputs.ior.nominal())
     }
 }
 

@@ -1,15 +1,19 @@
-//! The object's refractive index: the pass that estimates an unknown one (`ior = "auto"`), and
-//! the index the held-out views fit best, which gives the estimate, its spread, and a warning
-//! when a given index fits worse than a nearby one (docs/decisions.md#glass-of-unknown-index).
+//! The object's refractive index: how a run estimates an unknown one (`ior = "auto"`), and the
+//! index the held-out views fit best with the result, which gives the estimate's spread and a
+//! warning when a given index fits worse than a nearby one
+//! (docs/decisions.md#glass-of-unknown-index).
+//!
+//! An unknown index is a parameter of the optimisation beside the vertex positions: in every
+//! stage after the warm-up the refraction term's derivative with respect to the index
+//! ([`crate::loss::diff::snell_eta_adjoint`]) steps it with the shape
+//! ([`super::optim::IndexStepper`]); the stage's estimate, the mean over its averaged
+//! iterations, starts the next stage. The warm-up's DRT steps hold the index, and carve the
+//! start mesh differently at a wrong one; so a first pass, the warm-up and the schedule's first
+//! stage from the range's middle, finds where the run starts the index, and the run starts
+//! over from the start mesh at it.
 //!
 //! With the shape held fixed, the held-out views' refraction term is a smooth function of the
-//! index; its minimum is the root of its derivative ([`crate::loss::diff::snell_eta_adjoint`]),
-//! found by the secant method. A mesh made at a wrong index has bent to it, so its best fit lies
-//! between that index and the true one (the pig's physical 640×480 scan, true index 1.60: 1.569
-//! with a result made at 1.550, 1.596 with one made at 1.60). A run with an unknown index is two
-//! passes: the schedule without its last stage, each stage run at the best fit of the stage
-//! before (the first at the range's middle); then the whole schedule again from the start mesh
-//! at the pass's last best fit.
+//! index; its minimum is the root of its derivative, found by the secant method.
 
 use anyhow::Result;
 use serde::Serialize;
@@ -22,16 +26,11 @@ use crate::mesh::TriMesh;
 use crate::scan::{Ior, MAX_IOR};
 use crate::trace::path::MeshSurface;
 
-/// The settings of the index pass: `settings`' schedule without its last stage (its edges
-/// those of the first stages).
+/// The settings of the index pass: `settings`' warm-up and the first stage of its schedule.
 pub fn pass_settings(settings: &Settings) -> Settings {
-    if settings.stages < 2 {
-        return settings.clone();
-    }
-    let stages = settings.stages - 1;
     Settings {
-        stages,
-        final_edge: settings.edge_mm(stages - 1, 1.0),
+        stages: 1,
+        final_edge: settings.start_edge,
         ..settings.clone()
     }
 }
@@ -85,7 +84,7 @@ pub struct BestFit {
 pub struct IndexReport {
     /// As given (scan.toml or --ior).
     pub given: Ior,
-    /// The index the result was made at: the given one, or the index pass's estimate.
+    /// The index the result was made at: the given one, or its stage's estimate.
     pub used: f64,
     /// The index the held-out views fit best with the result's shape (`None`: no views held
     /// out, or the term has no minimum within reach).
@@ -238,13 +237,16 @@ mod tests {
     }
 
     #[test]
-    fn the_index_pass_runs_the_schedule_but_its_last_stage() {
+    fn the_index_pass_runs_the_warm_up_and_the_schedules_first_stage() {
         let balanced = Settings::preset(super::super::config::Preset::Balanced);
         let pass = pass_settings(&balanced);
-        assert_eq!(pass.stages, balanced.stages - 1);
-        for k in 0..pass.stages {
-            let (a, b) = (pass.edge_mm(k, 100.0), balanced.edge_mm(k, 100.0));
-            assert!((a - b).abs() < 1e-9, "stage {k}: {a} against {b}");
+        assert_eq!(pass.warmup_stages, balanced.warmup_stages);
+        assert_eq!(pass.total_stages(), balanced.warmup_stages + 1);
+        for s in 0..pass.total_stages() {
+            let (a, b) = (pass.stage(s), balanced.stage(s));
+            assert_eq!(a.1, b.1, "stage {s}");
+            let (a, b) = (a.0.edge_mm(a.1, 100.0), b.0.edge_mm(b.1, 100.0));
+            assert!((a - b).abs() < 1e-9, "stage {s}: {a} against {b}");
         }
     }
 }

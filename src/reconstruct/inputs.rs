@@ -20,6 +20,8 @@ pub const STORED_DENSITY: f64 = 4.0;
 pub struct Inputs {
     /// The object's refractive index, known or to estimate.
     pub ior: crate::scan::Ior,
+    /// Where an unknown index starts (the index pass's estimate; `None`: the range's middle).
+    pub ior_start: Option<f64>,
     pub targets: Vec<ViewTargets>,
     /// Per view of `targets`, the share of its decoded pixels kept (their weights carry its
     /// inverse).
@@ -75,6 +77,7 @@ pub fn load_inputs(
     Ok((
         Inputs {
             ior: scan.config.ior,
+            ior_start: None,
             targets,
             kept_shares,
             silhouettes,

@@ -32,9 +32,7 @@ use crate::loss::refraction::ViewTargets;
 use crate::mesh::io::{read_mesh, write_mesh};
 use crate::mesh::TriMesh;
 use crate::scan::silhouette::Silhouette;
-use crate::trace::path::MeshSurface;
 use crate::trace::thickness::thickness_quantile;
-use crate::trace::BuildMode;
 pub use checkpoint::{
     Checkpoint, CostProfile, IterationRecord, MembraneVerdict, StageReport, WarmUpVerdict,
     MEMBRANE_MIN_SHARE, MEMBRANE_SILHOUETTE_RATIO,
@@ -145,7 +143,7 @@ fn run(
             mesh = judge_warm_up(inputs, &split, &mut checkpoint, mesh, out, progress)?;
         }
         if inputs.ior.is_auto() {
-            estimate_index(inputs, &split, &mut checkpoint, &mesh, progress)?;
+            record_index(&mut checkpoint, inputs, progress);
         }
         commit(out, &checkpoint)?;
     }
@@ -156,35 +154,20 @@ fn run(
     })
 }
 
-/// An index pass's estimate after a stage ([`index`]): the index the held-out views fit best
-/// with `mesh`, which the next stage runs at.
-fn estimate_index(
-    inputs: &Inputs,
-    split: &Split,
-    checkpoint: &mut Checkpoint,
-    mesh: &TriMesh,
-    progress: &dyn Progress,
-) -> Result<()> {
-    if !split.validates() {
-        bail!("the refractive index cannot be estimated: no views are held out (validation_share is 0); hold some out, or give the index");
-    }
-    let from = (checkpoint.index(inputs), inputs.ior.range());
-    let surface = MeshSurface::with_mode(mesh, checkpoint.settings.normals, BuildMode::Static)?;
-    let settings = &checkpoint.settings;
-    let Some(best) = index::held_out_best(inputs, split, &surface, settings, from)? else {
-        progress.note(&format!(
-            "refractive index: the held-out views' fit has no clear minimum with this stage's mesh; the next stage keeps {:.4}",
-            checkpoint.index(inputs)
-        ));
-        return Ok(());
+/// After a stage of a run with an unknown index: the index it ended at (its estimate), which the
+/// next stage starts from ([`index`]).
+fn record_index(checkpoint: &mut Checkpoint, inputs: &Inputs, progress: &dyn Progress) {
+    let from = checkpoint.index(inputs);
+    let Some(estimate) = checkpoint.stages.last().and_then(|r| r.ior) else {
+        return;
     };
-    checkpoint.ior_fits.push([from.0, best.ior]);
-    progress.note(&format!(
-        "refractive index: the held-out views fit {:.4} ± {:.4} best with the mesh made at {:.4} ({} evaluations); the next stage runs at it",
-        best.ior, best.spread, from.0, best.evaluations
-    ));
-    checkpoint.ior_estimate = Some(best.ior);
-    Ok(())
+    if estimate != from {
+        progress.note(&format!(
+            "refractive index: {estimate:.4} with the shape (the stage started at {from:.4})"
+        ));
+    }
+    checkpoint.ior_fits.push([from, estimate]);
+    checkpoint.ior_estimate = Some(estimate);
 }
 
 /// The start mesh of a fresh run, written to `out` and committed as a checkpoint with no stage
@@ -308,6 +291,7 @@ mod tests {
         let mut checkpoint = Checkpoint::example(None);
         let inputs = Inputs {
             ior: crate::scan::Ior::Known(1.5),
+            ior_start: None,
             targets: Vec::new(),
             kept_shares: Vec::new(),
             silhouettes: Vec::new(),
@@ -360,6 +344,7 @@ mod tests {
         let mesh = crate::mesh::shapes::icosphere(10.0, 2);
         let inputs = |bits: PixelBits| Inputs {
             ior: crate::scan::Ior::Known(1.5),
+            ior_start: None,
             targets: vec![ViewTargets {
                 pixels: vec![PixelTarget {
                     dir: -nalgebra::Vector3::z(),

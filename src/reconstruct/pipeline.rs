@@ -1,7 +1,8 @@
 //! The pipeline's entry point, which the CLI, the demo and the benchmarks call: from a decoded
 //! scan to `result.ply` (with its confidence as a vertex property), with `report.json`, the loss
 //! plot, `confidence.png`, and the evaluation against the scan's ground truth where it has one;
-//! with an unknown refractive index, after the pass that estimates it ([`super::index`]).
+//! with an unknown refractive index, after a first pass that finds where to start it
+//! ([`super::index`]).
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
@@ -95,7 +96,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         let main_committed = matches!(existing, Existing::Run(_));
         let pass = (start.clone(), main_committed);
         match index_pass(&inputs, pass, &settings, out, progress, stop)? {
-            Ok(estimate) => inputs.ior = Ior::Known(estimate),
+            Ok(estimate) => inputs.ior_start = Some(estimate),
             Err(stopped) => return Ok(stopped_outcome(stopped, warnings)),
         }
     }
@@ -175,7 +176,7 @@ fn index_pass(
     let pass = index::pass_settings(settings);
     let (lo, hi) = inputs.ior.range();
     progress.note(&format!(
-        "the refractive index is unknown ({lo}–{hi}): a first pass of {} stages estimates it with the shape, in {}",
+        "the refractive index is unknown ({lo}–{hi}): a first pass of {} stages finds where to start it, in {}",
         pass.total_stages(),
         dir.display()
     ));
@@ -185,12 +186,13 @@ fn index_pass(
     }
     let estimate = finished.checkpoint.index(inputs);
     progress.note(&format!(
-        "refractive index estimated at {estimate:.4}: the run starts again from the start mesh at it"
+        "refractive index {estimate:.4} after the first pass: the run starts again from the start mesh at it, and estimates it with the shape from stage {} on",
+        settings.warmup_stages + 1
     ));
     Ok(Ok(estimate))
 }
 
-/// The index the result was made at (`given`, or the index pass's estimate) and the held-out
+/// The index the result was made at (`given`, or its stage's estimate) and the held-out
 /// fit of the result (`finished`'s stage `result_stage`, mesh `result`) about it.
 fn index_report(
     inputs: &Inputs,

@@ -3,7 +3,7 @@
 
 use super::config::Settings;
 use super::coverage::Coverage;
-use super::optim::{Stepper, TailMean};
+use super::optim::{IndexStepper, Stepper, TailMean};
 use super::pull::data_edge_bounds;
 use super::validation::{validate_mesh, Split, ValidationRecord};
 use crate::loss::Drops;
@@ -63,9 +63,23 @@ pub fn remesh_options(phase: &Settings, edge_mm: f64) -> RemeshOptions {
     }
 }
 
+/// The refractive index a stage starts at, and the range it is free in (`None`: held).
+pub(super) struct StageIndex {
+    pub(super) ior: f64,
+    pub(super) free: Option<(f64, f64)>,
+}
+
+/// The range the refractive index is free in during stage `s` (`None`: it is held): an unknown
+/// index is optimised with the shape in every stage after the warm-up, whose DRT steps hold it
+/// at the range's middle ([`super::index`]).
+fn index_free(inputs: &Inputs, settings: &Settings, s: usize) -> Option<(f64, f64)> {
+    (inputs.ior.is_auto() && s >= settings.warmup_stages).then(|| inputs.ior.range())
+}
+
 /// Remeshes `mesh` to the next stage's edge length (on a graded stage, shorter where the data
-/// keeps pulling: [`data_edge_bounds`]), runs that stage on the views `split` fits and measures
-/// the result on those it holds out; records it in `checkpoint`.
+/// keeps pulling: [`data_edge_bounds`]), runs that stage on the views `split` fits (an unknown
+/// index with the shape: [`index_free`]) and measures the result on those it holds out, at the
+/// stage's index; records it in `checkpoint`.
 pub(super) fn run_next_stage(
     inputs: &Inputs,
     split: &Split,
@@ -87,6 +101,7 @@ pub(super) fn run_next_stage(
         ));
     }
     let ior = checkpoint.index(inputs);
+    let free = index_free(inputs, &checkpoint.settings, s);
     let mut opts = remesh_options(&phase, edge_mm);
     if opts.adaptive.is_some() {
         opts.edge_bound_mm = data_edge_bounds((inputs, ior), split, (mesh, edge_mm), &phase)
@@ -97,7 +112,7 @@ pub(super) fn run_next_stage(
     let stages = checkpoint.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
     let (report, mean) = run_stage(
-        (inputs, split, ior),
+        (inputs, split, StageIndex { ior, free }),
         &mut mesh,
         &phase,
         (s, k),
@@ -105,6 +120,7 @@ pub(super) fn run_next_stage(
         &mut checkpoint.history,
         progress,
     )?;
+    let ior = report.ior.unwrap_or(ior);
     let t_validation = Instant::now();
     let (validation, averaged) =
         settle_stage((inputs, split, ior), &mut mesh, mean, &checkpoint.settings)?;
@@ -153,10 +169,12 @@ pub(super) fn settle_stage(
 }
 
 /// The iterations of stage `s` of the run, stage `k` of `settings`' schedule, at refractive
-/// index `ior`, on `mesh` (moved in place to the last iterate), and the mean of the last iterates
-/// when `settings` average them.
+/// index `ior` (when `free` gives a range, the index is a parameter too, stepped by
+/// [`IndexStepper`] from `ior`; the report's index is its mean over the averaged iterations), on
+/// `mesh` (moved in place to the last iterate), and the mean of the last iterates when
+/// `settings` average them.
 pub(super) fn run_stage(
-    (inputs, split, ior): (&Inputs, &Split, f64),
+    (inputs, split, StageIndex { ior, free }): (&Inputs, &Split, StageIndex),
     mesh: &mut TriMesh,
     settings: &Settings,
     (s, k): (usize, usize),
@@ -184,7 +202,10 @@ pub(super) fn run_stage(
     let mut membrane_share = 0.0f64;
     let mut profile = CostProfile::default();
     let timed = |t: &mut f64, start: Instant| *t += start.elapsed().as_secs_f64();
+    let mut index = free
+        .map(|range| IndexStepper::new(ior, range, settings.iterations, settings.average_share));
     for it in 0..settings.iterations {
+        let ior = index.as_ref().map_or(ior, |x| x.ior);
         let mut rng = ChaCha8Rng::seed_from_u64(iteration_seed(settings.seed, s, it));
         let draws = Draws::new(split, settings, &mut rng);
         let t = Instant::now();
@@ -203,6 +224,17 @@ pub(super) fn run_stage(
         used += terms.refraction.used;
         drops.add(&terms.refraction.drops);
         contour += terms.silhouette.used;
+        if let Some(index) = &mut index {
+            let w = terms.refraction.weight;
+            let grad = if w > 0.0 {
+                terms.refraction.ior_grad / w
+            } else {
+                0.0
+            };
+            if index.step(it, grad).is_none() {
+                bail!("stage {s}, iteration {it}: the refractive index's gradient became non-finite (internal error; the last checkpoint is intact)");
+            }
+        }
         let (record, grad) = terms.combine(settings, (s, it));
         last = record;
         history.push(last);
@@ -238,7 +270,7 @@ pub(super) fn run_stage(
             refraction_rays_per_s: used as f64 / profile.refraction.max(1e-9),
             ..profile
         },
-        ior: Some(ior),
+        ior: Some(index.as_ref().map_or(ior, |x| x.estimate())),
         skipped: false,
     };
     Ok((report, tail.mean()))
