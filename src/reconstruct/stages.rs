@@ -71,7 +71,7 @@ pub(super) struct StageIndex {
 
 /// The range the refractive index is free in during stage `s` (`None`: it is held): an unknown
 /// index is optimised with the shape in every stage after the warm-up, whose DRT steps hold it
-/// at the range's middle ([`super::index`]).
+/// where the run starts it ([`super::index`]).
 fn index_free(inputs: &Inputs, settings: &Settings, s: usize) -> Option<(f64, f64)> {
     (inputs.ior.is_auto() && s >= settings.warmup_stages).then(|| inputs.ior.range())
 }
@@ -225,30 +225,19 @@ pub(super) fn run_stage(
         drops.add(&terms.refraction.drops);
         contour += terms.silhouette.used;
         if let Some(index) = &mut index {
-            let w = terms.refraction.weight;
-            let grad = if w > 0.0 {
-                terms.refraction.ior_grad / w
-            } else {
-                0.0
-            };
-            if index.step(it, grad).is_none() {
-                bail!("stage {s}, iteration {it}: the refractive index's gradient became non-finite (internal error; the last checkpoint is intact)");
-            }
+            step_index(index, &terms.refraction, (s, it))?;
         }
         let (record, grad) = terms.combine(settings, (s, it));
         last = record;
         history.push(last);
         progress.iteration(&last);
-        let t = Instant::now();
-        let next = stepper.step(&mesh.positions, &grad);
-        timed(&mut profile.step, t);
-        if let Some(bad) = next.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
-            bail!("stage {s}, iteration {it}: vertex {bad} became non-finite (internal error; the last checkpoint is intact)");
-        }
-        let t = Instant::now();
-        surface.update_positions(&next)?;
-        timed(&mut profile.refit, t);
-        mesh.positions = next;
+        step_positions(
+            (&mut stepper, &mut surface),
+            mesh,
+            &grad,
+            (s, it),
+            &mut profile,
+        )?;
         tail.add(it, &mesh.positions);
     }
     let report = StageReport {
@@ -274,6 +263,48 @@ pub(super) fn run_stage(
         skipped: false,
     };
     Ok((report, tail.mean()))
+}
+
+/// One optimiser step of `mesh`'s vertex positions down `grad` at iteration `it` of stage `s`,
+/// `surface` refitted to them (the times of both into `profile`); a non-finite position is an
+/// internal error.
+fn step_positions(
+    (stepper, surface): (&mut Stepper, &mut MeshSurface),
+    mesh: &mut TriMesh,
+    grad: &[nalgebra::Vector3<f64>],
+    (s, it): (usize, usize),
+    profile: &mut CostProfile,
+) -> Result<()> {
+    let t = Instant::now();
+    let next = stepper.step(&mesh.positions, grad);
+    profile.step += t.elapsed().as_secs_f64();
+    if let Some(bad) = next.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+        bail!("stage {s}, iteration {it}: vertex {bad} became non-finite (internal error; the last checkpoint is intact)");
+    }
+    let t = Instant::now();
+    surface.update_positions(&next)?;
+    profile.refit += t.elapsed().as_secs_f64();
+    mesh.positions = next;
+    Ok(())
+}
+
+/// Steps a free index at iteration `it` of stage `s` down the refraction term's derivative
+/// with respect to it, per unit of the term's weight.
+fn step_index(
+    index: &mut IndexStepper,
+    refraction: &TermValue,
+    (s, it): (usize, usize),
+) -> Result<()> {
+    let w = refraction.weight;
+    let grad = if w > 0.0 {
+        refraction.ior_grad / w
+    } else {
+        0.0
+    };
+    if index.step(it, grad).is_none() {
+        bail!("stage {s}, iteration {it}: the refractive index's gradient became non-finite (internal error; the last checkpoint is intact)");
+    }
+    Ok(())
 }
 
 /// Checks the mesh at the end of stage `s` (closed, manifold, outward); returns its count of
