@@ -199,8 +199,9 @@ pub struct IndexStepper {
     tail_count: usize,
 }
 
-/// The index stepper's learning rate at a stage's first iteration (index units): the pig's
-/// `balanced` stages start up to 0.11 from where they settle, in 150 iterations.
+/// The index stepper's learning rate at a stage's first iteration (index units): the dog's
+/// first `balanced` stage after the warm-up moves its index 0.11 (1.55 → 1.44) in 150
+/// iterations.
 pub const INDEX_LR: f64 = 0.005;
 /// The index stepper's learning rate at a stage's last iteration (index units).
 pub const INDEX_LR_END: f64 = 0.0005;
@@ -328,9 +329,9 @@ mod tests {
     use super::*;
 
     /// The index stepper on a noisy quadratic loss in the index (minimum 1.48, the gradient's
-    /// noise as large as its value 0.07 away), from 1.55 in 150 iterations as in `balanced`: its estimate
-    /// settles within 0.003 of the minimum; with the minimum below the range it stays at the
-    /// range's floor; a non-finite gradient is refused.
+    /// noise as large as its value 0.07 away), from 1.55 in 150 iterations as in `balanced`: its
+    /// estimate settles within 0.003 of the minimum; with the minimum below the range it stays
+    /// at the range's floor; a non-finite gradient is refused.
     #[test]
     fn the_index_stepper_settles_at_the_minimum_within_its_range() {
         use rand::{RngExt, SeedableRng};
