@@ -141,14 +141,40 @@ impl Contributions {
         }
     }
 
+    /// Empty, with room for `grad` and `ngrad` entries, reusing the lists of `spare` (whose
+    /// memory is already touched) where it has one.
+    pub fn reusing(
+        spare: &std::sync::Mutex<Vec<Contributions>>,
+        grad: usize,
+        ngrad: usize,
+    ) -> Self {
+        let reused = spare.lock().ok().and_then(|mut s| s.pop());
+        let Some(mut c) = reused else {
+            return Self::with_capacity(grad, ngrad);
+        };
+        c.grad.reserve(grad);
+        c.ngrad.reserve(ngrad);
+        Self {
+            grad: c.grad,
+            ngrad: c.ngrad,
+            penalties: c.penalties,
+            ..Self::default()
+        }
+    }
+
     /// Adds a pixel of weight `weight` (its loss and gradient already carry it).
     pub fn push_pixel(&mut self, g: &PixelGradient, weight: f64) {
-        self.loss += g.loss;
-        self.used += 1;
-        self.weight += weight;
         self.grad.extend_from_slice(&g.grad);
         self.ngrad.extend_from_slice(&g.ngrad);
-        self.ior += g.ior;
+        self.count_pixel(g.loss, weight, g.ior);
+    }
+
+    /// Adds a used pixel's loss, weight and ∂L/∂index, its gradient entries already in place.
+    pub fn count_pixel(&mut self, loss: f64, weight: f64, ior: f64) {
+        self.loss += loss;
+        self.used += 1;
+        self.weight += weight;
+        self.ior += ior;
     }
 }
 
@@ -171,6 +197,8 @@ pub struct Accumulator {
     /// Per vertex, the sum of the [`Contributions::penalties`] it receives (the penalties of
     /// the refraction pixels behind its touches); kept only by [`Self::counting`], else empty.
     pub penalty: Vec<f64>,
+    /// Chunks already added, emptied, whose lists the next chunks reuse ([`Self::add_reusing`]).
+    pub spare: Vec<Contributions>,
 }
 
 impl Accumulator {
@@ -198,7 +226,19 @@ impl Accumulator {
             ior: 0.0,
             touches: Vec::new(),
             penalty: Vec::new(),
+            spare: Vec::new(),
         }
+    }
+
+    /// As [`Self::add`], then keeps the chunks, emptied, in [`Self::spare`].
+    pub fn add_reusing(&mut self, chunks: Vec<Contributions>) {
+        self.add(&chunks);
+        self.spare.extend(chunks.into_iter().map(|mut c| {
+            c.grad.clear();
+            c.ngrad.clear();
+            c.penalties.clear();
+            c
+        }));
     }
 
     /// Adds chunks' contributions, in their order. The vertex range is split between threads,

@@ -10,6 +10,8 @@
 //! modelled path cannot be compared (no hit, TIR, wrong number of refractions, missing the
 //! monitor, a derivative that is unbounded or not finite) are dropped and counted by reason.
 
+use std::sync::Mutex;
+
 use arrayvec::ArrayVec;
 use nalgebra::{Point3, Vector2, Vector3};
 use rayon::prelude::*;
@@ -271,6 +273,8 @@ pub fn footprint_gradient_into(
 ) -> Result<(), DropReason> {
     let mut interfaces = std::mem::take(&mut out.interfaces);
     interfaces.clear();
+    out.grad.clear();
+    out.ngrad.clear();
     let min_cos = px.min_cos(s);
     let paths: ArrayVec<Result<Forward, DropReason>, MAX_FOOTPRINT_RAYS> = rays
         .iter()
@@ -284,8 +288,11 @@ pub fn footprint_gradient_into(
     r
 }
 
-/// The loss and gradient of pixel `px` (into `out`, overwritten) from its footprint's `paths`
-/// forward, their interfaces in `interfaces`, as [`footprint_gradient_into`] describes.
+/// The loss and gradient of pixel `px` from its footprint's `paths` forward, their interfaces in
+/// `interfaces`, as [`footprint_gradient_into`] describes: `out.loss` and `out.ior` are
+/// overwritten, the pixel's entries appended to `out.grad` and `out.ngrad` (which may hold the
+/// pixels before it: the hot loop writes a chunk's entries where they are summed), and nothing
+/// is appended when the pixel is dropped.
 fn pixel_from_paths(
     mesh: &MeshState,
     s: &RefractionSettings,
@@ -315,8 +322,7 @@ fn pixel_from_paths(
     let gr = mean * (2.0 * dr2 * px.weight / m);
     let side = if paths.len() > 1 { s.footprint } else { 1 };
     let (bit_loss, bit_grads) = bit_term(s, view, px, &compared, side);
-    out.grad.clear();
-    out.ngrad.clear();
+    let start = (out.grad.len(), out.ngrad.len());
     out.ior = 0.0;
     for (k, (f, e)) in compared.iter().enumerate() {
         let (mut gp, mut gd) = exit_adjoint(s, view, e, &f.d, &gr);
@@ -330,12 +336,13 @@ fn pixel_from_paths(
     }
     let finite = (loss + bit_loss).is_finite()
         && out.ior.is_finite()
-        && out
-            .grad
+        && out.grad[start.0..]
             .iter()
-            .chain(out.ngrad.iter())
+            .chain(&out.ngrad[start.1..])
             .all(|(_, g)| g.iter().all(|x| x.is_finite()));
     if !finite {
+        out.grad.truncate(start.0);
+        out.ngrad.truncate(start.1);
         return Err(DropReason::NonFinite);
     }
     out.loss = (loss + bit_loss) * px.weight;
@@ -457,35 +464,45 @@ impl Forward {
 /// f64 on it ([`refract_at`]), once, for the trace and for the gradient. Ray `i` is dropped
 /// where it meets an interface with cos θi or cos θt below `min_cos(i)`, and where its path
 /// leaves with a refraction count the settings exclude. The interfaces are appended to
-/// `interfaces`.
+/// `interfaces` and the paths, one per ray, written to `paths`.
 fn trace_forward(
     surface: &dyn Surface,
     mesh: &MeshState,
     s: &RefractionSettings,
     (eye, dirs): (&Point3<f64>, &[V3]),
     min_cos: impl Fn(usize) -> f64,
-    interfaces: &mut Vec<Interface>,
-) -> Result<Vec<Result<Forward, DropReason>>, TraceError> {
+    (b, paths, interfaces): (
+        &mut TraceBuffers,
+        &mut Vec<Result<Forward, DropReason>>,
+        &mut Vec<Interface>,
+    ),
+) -> Result<(), TraceError> {
     let max = (s.max_refractions as usize).min(MAX_TRAIL);
     let offset = surface.offset();
-    let mut paths: Vec<Result<Forward, DropReason>> = dirs
-        .iter()
-        .map(|d| {
-            Ok(Forward {
-                chain: ArrayVec::new(),
-                o: *eye,
-                d: *d,
-            })
+    paths.clear();
+    paths.extend(dirs.iter().map(|d| {
+        Ok(Forward {
+            chain: ArrayVec::new(),
+            o: *eye,
+            d: *d,
         })
-        .collect();
-    let mut active: Vec<usize> = (0..dirs.len()).collect();
-    let mut batch: Vec<Ray> = dirs.iter().map(|d| Ray::new(*eye, *d)).collect();
-    let mut next_batch = Vec::with_capacity(batch.len());
-    let mut prims = vec![None; batch.len()];
+    }));
+    let TraceBuffers {
+        active,
+        batch,
+        next_batch,
+        prims,
+    } = b;
+    active.clear();
+    active.extend(0..dirs.len());
+    batch.clear();
+    batch.extend(dirs.iter().map(|d| Ray::new(*eye, *d)));
+    prims.clear();
+    prims.resize(batch.len(), None);
     let mut first = true;
     while !active.is_empty() {
         let prims = &mut prims[..batch.len()];
-        surface.first_elements(&batch, prims, first)?;
+        surface.first_elements(batch, prims, first)?;
         first = false;
         next_batch.clear();
         let mut kept = 0;
@@ -513,9 +530,18 @@ fn trace_forward(
             }
         }
         active.truncate(kept);
-        std::mem::swap(&mut batch, &mut next_batch);
+        std::mem::swap(batch, next_batch);
     }
-    Ok(paths)
+    Ok(())
+}
+
+/// The rays [`trace_forward`] sends to Embree at each interface, and which paths they continue.
+#[derive(Default)]
+struct TraceBuffers {
+    active: Vec<usize>,
+    batch: Vec<Ray>,
+    next_batch: Vec<Ray>,
+    prims: Vec<Option<u32>>,
 }
 
 /// Forward through one interface: the ray (o, d) meets triangle `prim`'s plane and refracts
@@ -696,63 +722,120 @@ pub fn add_view(
     // Trace and differentiate chunk by chunk (about TRACE_CHUNK rays), each on one thread, so
     // the chunk's paths stay in cache between the two; then sum the chunks in order.
     let counting = !acc.penalty.is_empty();
+    let spare = Mutex::new(std::mem::take(&mut acc.spare));
     let chunks: Vec<Contributions> = view
         .pixels
         .par_chunks((TRACE_CHUNK / per_pixel).max(1))
-        .map(|chunk| -> Result<Contributions, TraceError> {
-            let dirs = footprint_dirs(view, chunk, &offsets);
-            let mut interfaces = Vec::with_capacity(2 * dirs.len());
-            let min_cos = |i: usize| chunk[i / per_pixel].min_cos(s);
-            let paths = trace_forward(
-                surface,
-                &mesh,
-                s,
-                (&view.eye, &dirs),
-                min_cos,
-                &mut interfaces,
-            )?;
-            // Three vertices per refraction, each with a normal entry for vertex normals.
-            let entries = 3 * s.max_refractions as usize * dirs.len();
-            let normal_entries = if mesh.vertex_normals.is_some() {
-                entries
-            } else {
-                0
-            };
-            let mut c = Contributions::with_capacity(entries, normal_entries);
-            let mut g = PixelGradient::default();
-            for (px, part) in chunk.iter().zip(paths.chunks(per_pixel)) {
-                match pixel_from_paths(&mesh, s, view, px, (part, &interfaces), &mut g) {
-                    Ok(()) => {
-                        c.push_pixel(&g, px.weight);
-                        if counting {
-                            let penalty = if px.weight > 0.0 {
-                                g.loss / px.weight
-                            } else {
-                                0.0
-                            };
-                            c.penalties
-                                .extend(g.grad.iter().map(|&(v, _)| (v, penalty)));
-                        }
-                    }
-                    Err(r) => c.drops.count(r),
-                }
-            }
-            Ok(c)
+        .map(|chunk| {
+            ChunkBuffers::with(|buffers| {
+                let pixels = (chunk, offsets.as_slice());
+                let out = (counting, &spare);
+                chunk_contributions(surface, &mesh, s, view, pixels, out, buffers)
+            })
         })
-        .collect::<Result<_, _>>()?;
-    acc.add(&chunks);
+        .collect::<Result<_, TraceError>>()?;
+    acc.spare = spare.into_inner().unwrap_or_default();
+    acc.add_reusing(chunks);
     Ok(())
 }
 
+/// What a thread reuses from chunk to chunk (and view to view, iteration to iteration), so
+/// that tracing and differentiating a chunk neither allocates nor touches fresh memory.
+#[derive(Default)]
+struct ChunkBuffers {
+    dirs: Vec<V3>,
+    trace: TraceBuffers,
+    paths: Vec<Result<Forward, DropReason>>,
+    interfaces: Vec<Interface>,
+}
+
+thread_local! {
+    static CHUNK_BUFFERS: std::cell::RefCell<ChunkBuffers> = Default::default();
+}
+
+impl ChunkBuffers {
+    /// Runs `f` with this thread's buffers (fresh ones if they are in use further up this
+    /// thread's stack).
+    fn with<R>(f: impl FnOnce(&mut ChunkBuffers) -> R) -> R {
+        CHUNK_BUFFERS.with(|b| match b.try_borrow_mut() {
+            Ok(mut b) => f(&mut b),
+            Err(_) => f(&mut ChunkBuffers::default()),
+        })
+    }
+}
+
+/// Traces and differentiates one chunk of a view's `pixels` (each by the rays at `offsets` from
+/// its centre), on the calling thread: the chunk's loss, counts and gradient entries, and if
+/// `counting`, each compared pixel's penalty at the vertices it touches; in lists taken from
+/// `spare` where it has some.
+fn chunk_contributions(
+    surface: &dyn Surface,
+    mesh: &MeshState,
+    s: &RefractionSettings,
+    view: &ViewTargets,
+    (pixels, offsets): (&[PixelTarget], &[(f64, f64)]),
+    (counting, spare): (bool, &Mutex<Vec<Contributions>>),
+    b: &mut ChunkBuffers,
+) -> Result<Contributions, TraceError> {
+    let per_pixel = offsets.len();
+    footprint_dirs(view, pixels, offsets, &mut b.dirs);
+    b.interfaces.clear();
+    let min_cos = |i: usize| pixels[i / per_pixel].min_cos(s);
+    let trace = (&mut b.trace, &mut b.paths, &mut b.interfaces);
+    trace_forward(surface, mesh, s, (&view.eye, &b.dirs), min_cos, trace)?;
+    // Three vertices per refraction, each with a normal entry for vertex normals; the pixels
+    // append theirs straight to the chunk's lists.
+    let entries = 3 * s.max_refractions as usize * b.dirs.len();
+    let normal_entries = if mesh.vertex_normals.is_some() {
+        entries
+    } else {
+        0
+    };
+    let mut c = Contributions::reusing(spare, entries, normal_entries);
+    let mut g = PixelGradient {
+        grad: std::mem::take(&mut c.grad),
+        ngrad: std::mem::take(&mut c.ngrad),
+        ..PixelGradient::default()
+    };
+    for (px, part) in pixels.iter().zip(b.paths.chunks(per_pixel)) {
+        let start = g.grad.len();
+        match pixel_from_paths(mesh, s, view, px, (part, &b.interfaces), &mut g) {
+            Ok(()) => {
+                c.count_pixel(g.loss, px.weight, g.ior);
+                if !counting {
+                    continue;
+                }
+                let penalty = if px.weight > 0.0 {
+                    g.loss / px.weight
+                } else {
+                    0.0
+                };
+                c.penalties
+                    .extend(g.grad[start..].iter().map(|&(v, _)| (v, penalty)));
+            }
+            Err(r) => c.drops.count(r),
+        }
+    }
+    (c.grad, c.ngrad) = (g.grad, g.ngrad);
+    Ok(c)
+}
+
 /// The directions of the footprint rays of `pixels`, pixel by pixel (the pixel's own ray for
-/// the single offset (0, 0)).
-fn footprint_dirs(view: &ViewTargets, pixels: &[PixelTarget], offsets: &[(f64, f64)]) -> Vec<V3> {
+/// the single offset (0, 0)), into `dirs`.
+fn footprint_dirs(
+    view: &ViewTargets,
+    pixels: &[PixelTarget],
+    offsets: &[(f64, f64)],
+    dirs: &mut Vec<V3>,
+) {
+    dirs.clear();
     match view.pixel_axes {
-        Some(axes) if offsets.len() > 1 => pixels
-            .iter()
-            .flat_map(|p| offsets.iter().map(move |&o| axes.offset(&p.dir, o)))
-            .collect(),
-        _ => pixels.iter().map(|p| p.dir).collect(),
+        Some(axes) if offsets.len() > 1 => dirs.extend(
+            pixels
+                .iter()
+                .flat_map(|p| offsets.iter().map(move |&o| axes.offset(&p.dir, o))),
+        ),
+        _ => dirs.extend(pixels.iter().map(|p| p.dir)),
     }
 }
 
