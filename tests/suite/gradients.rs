@@ -1114,8 +1114,10 @@ fn on_the_true_shape_with_exact_correspondences_the_loss_vanishes() {
 fn the_term_traces_the_paths_the_path_tracer_finds() {
     // The refraction term traces its rays itself, computing each hit and refraction once in f64
     // on the triangle Embree found. Pixel by pixel, the path tracer's triangles recomputed by
-    // `pixel_gradient` must give the same rays used and the same loss, on a bumpy ellipsoid
-    // (so that the loss is far from 0) with up to 4 refractions.
+    // `pixel_gradient` must give the same rays used, the same loss and the same gradient, on a
+    // bumpy ellipsoid (so that the loss is far from 0) with up to 4 refractions. The term writes
+    // each pixel's entries straight into its chunk's list, in buffers reused from chunk to
+    // chunk and view to view; the pixels apart are added one by one, in the same order.
     let mut mesh = ellipsoid(V3::new(30.0, 24.0, 20.0), 4);
     let views = {
         let truth = MeshSurface::new(&mesh, NormalModel::Vertex).unwrap();
@@ -1128,9 +1130,15 @@ fn the_term_traces_the_paths_the_path_tracer_finds() {
             max_refractions: 4,
             ..settings(1.5, normals, ResidualForm::Screen, Robust::L2)
         };
-        let (loss, used, _, _) = evaluate_views(&surface, &views, &s);
         let vn = (normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
+        let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
+        for v in &views {
+            add_view(&surface, &mesh, vn.as_deref(), &s, v, &mut acc).unwrap();
+        }
+        let (loss, used) = (acc.loss, acc.used);
+        let grad = acc.finish(&mesh);
         let (mut loss_apart, mut used_apart) = (0.0, 0);
+        let mut apart = Contributions::default();
         for v in &views {
             let rays: Vec<Ray> = v.pixels.iter().map(|p| Ray::new(v.eye, p.dir)).collect();
             let mut trails = vec![Trail::default(); rays.len()];
@@ -1144,9 +1152,23 @@ fn the_term_traces_the_paths_the_path_tracer_finds() {
                 if let Ok(g) = pixel_gradient(&state(&mesh, &vn), &s, v, px, trail.prims()) {
                     loss_apart += g.loss;
                     used_apart += 1;
+                    apart.push_pixel(&g, px.weight);
                 }
             }
         }
+        let mut acc_apart = Accumulator::new(mesh.positions.len(), vn.is_some());
+        acc_apart.add(&[apart]);
+        let grad_apart = acc_apart.finish(&mesh);
+        let scale = grad.iter().map(|g| g.norm()).fold(0.0, f64::max);
+        let worst = grad
+            .iter()
+            .zip(&grad_apart)
+            .map(|(a, b)| (a - b).norm())
+            .fold(0.0, f64::max);
+        assert!(
+            scale > 0.0 && worst <= 1e-9 * scale,
+            "{normals:?}: {worst} of {scale}"
+        );
         assert!(used > 2000, "{normals:?}: {used} rays");
         assert_eq!(used, used_apart, "{normals:?}");
         assert!(loss > 1.0, "{normals:?}: loss {loss}");
