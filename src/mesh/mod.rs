@@ -101,6 +101,22 @@ impl TriMesh {
         self.bbox().map_or(0.0, |(lo, hi)| (hi - lo).norm())
     }
 
+    /// Mean length of the faces' edges, mm (each edge of a closed mesh counted once per face, so
+    /// as often as any other; 0 for a mesh without faces).
+    pub fn mean_edge_length(&self) -> f64 {
+        let total: f64 = (0..self.faces.len())
+            .map(|f| {
+                let [a, b, c] = self.corners(f);
+                (b - a).norm() + (c - b).norm() + (a - c).norm()
+            })
+            .sum();
+        if self.faces.is_empty() {
+            0.0
+        } else {
+            total / (3 * self.faces.len()) as f64
+        }
+    }
+
     /// Per vertex, a third of its faces' area, mm² (they sum to the mesh's area).
     pub fn vertex_areas(&self) -> Vec<f64> {
         let mut area = vec![0.0; self.positions.len()];
@@ -157,5 +173,27 @@ impl TriMesh {
         for p in &mut self.positions {
             *p = Point3::from(p.coords * s + t);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_mean_edge_counts_every_edge_of_a_closed_mesh_alike() {
+        // A corner tetrahedron: three edges of 1 mm and three of √2 mm, each in two faces.
+        let p = |x, y, z| Point3::new(x, y, z);
+        let tetra = TriMesh::new(
+            vec![p(0., 0., 0.), p(1., 0., 0.), p(0., 1., 0.), p(0., 0., 1.)],
+            vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        );
+        let expected = (3.0 + 3.0 * 2f64.sqrt()) / 6.0;
+        assert!((tetra.mean_edge_length() - expected).abs() < 1e-15);
+        // On any closed mesh it is the mean over the unique edges.
+        let sphere = shapes::icosphere(10.0, 3);
+        let unique = stats::edge_lengths(&sphere).mean_mm;
+        assert!((sphere.mean_edge_length() - unique).abs() < 1e-12 * unique);
+        assert_eq!(TriMesh::new(vec![], vec![]).mean_edge_length(), 0.0);
     }
 }

@@ -94,12 +94,20 @@ pub struct Settings {
     pub refraction_views: usize,
     pub silhouette_views: usize,
     /// How far apart (share of the current mesh's bounding-box diagonal) the refraction rays
-    /// of a view lie at the object: each iteration draws that share of a view's decoded pixels
-    /// that puts them so far apart, (pixel / spacing)² at the depth of the mesh's centre (all
-    /// where the pixels are coarser), systematically from a random offset, each weighted by the
-    /// inverse of the share (unbiased sums). The ray count then follows the scene, not the
-    /// camera's pixel count (docs/decisions.md#rays-that-follow-the-scene).
+    /// of a view lie at the object at most: each iteration draws that share of a view's
+    /// decoded pixels that puts them so far apart, (pixel / spacing)² at the depth of the mesh's
+    /// centre (all where the pixels are coarser), systematically from a random offset, each
+    /// weighted by the inverse of the share (unbiased sums). The ray count then follows the
+    /// scene, not the camera's pixel count (docs/decisions.md#rays-that-follow-the-scene).
     pub ray_spacing: f64,
+    /// Where the current mesh's edges are finer than `ray_spacing`, an iteration's rays lie this
+    /// many of its mean edge lengths apart instead (0: `ray_spacing` alone); never closer than
+    /// the kept sample ([`Settings::kept_spacing_share`]). Fine stages then get the rays their
+    /// edges can resolve, coarse ones no fewer than before
+    /// (docs/decisions.md#rays-that-follow-the-mesh; absent in reports written before it
+    /// existed).
+    #[serde(default)]
+    pub ray_edge_spacing: f64,
     pub normals: NormalModel,
     pub residual: ResidualForm,
     pub robust: Robust,
@@ -212,6 +220,14 @@ const RETIRED: [(&str, &str); 1] = [(
     "use ray_spacing (how far apart the rays lie at the object, a share of the diagonal)",
 )];
 
+/// How many times as dense (per area) as `ray_spacing`'s rays the run's kept sample of each view
+/// is at least: an iteration on a coarse mesh draws a quarter of it where the camera's pixels are
+/// finer than the kept spacing.
+pub const KEPT_DENSITY: f64 = 4.0;
+
+/// The largest `ray_edge_spacing`, mean edges: coarser rays would leave faces unseen.
+const MAX_RAY_EDGE_SPACING: f64 = 10.0;
+
 /// `footprint = 0`: rays per pixel side chosen by the run ([`Settings::resolve_footprint`]).
 pub const AUTO_FOOTPRINT: u32 = 0;
 
@@ -314,6 +330,7 @@ impl Settings {
             refraction_views: 2,
             silhouette_views: 4,
             ray_spacing: 1.0 / 180.0,
+            ray_edge_spacing: 0.4,
             normals: NormalModel::Vertex,
             residual: ResidualForm::Direction,
             robust: Robust::Cauchy(0.2),
@@ -393,6 +410,7 @@ impl Settings {
                 refraction_views: 1,
                 silhouette_views: 8,
                 ray_spacing: 1.0 / 250.0,
+                ray_edge_spacing: 0.0,
                 normals: NormalModel::Face,
                 residual: ResidualForm::Direction,
                 robust: Robust::L2,
@@ -478,6 +496,12 @@ impl Settings {
             return bad(
                 "ray_spacing",
                 "must lie in (0, 0.1] (a share of the diagonal)",
+            );
+        }
+        if !(0.0..=MAX_RAY_EDGE_SPACING).contains(&self.ray_edge_spacing) {
+            return bad(
+                "ray_edge_spacing",
+                &format!("must lie in [0, {MAX_RAY_EDGE_SPACING}] (mean edges; 0: ray_spacing)"),
             );
         }
         if !(0.0..0.5).contains(&self.min_cos) {
@@ -644,6 +668,19 @@ impl Settings {
         } == *committed
     }
 
+    /// How far apart the run's kept sample of each view puts its rays at the object, as a share
+    /// of the start mesh's bounding-box diagonal: [`KEPT_DENSITY`] times as dense as
+    /// `ray_spacing`'s, and as dense as the last stage's rays where `ray_edge_spacing` asks for
+    /// more (its edge is the shortest mean edge the schedule aims at).
+    pub fn kept_spacing_share(&self) -> f64 {
+        let coarse = self.ray_spacing / KEPT_DENSITY.sqrt();
+        if self.ray_edge_spacing > 0.0 {
+            coarse.min(self.ray_edge_spacing * self.final_edge)
+        } else {
+            coarse
+        }
+    }
+
     /// Target edge length of stage `s` of this schedule (mm) for an initial bounding-box
     /// diagonal `diag`.
     pub fn edge_mm(&self, s: usize, diag: f64) -> f64 {
@@ -694,6 +731,30 @@ mod tests {
         assert_eq!(TargetWeights::Cell.weight(&cell(4.0)), 1.0 / 16.0);
         assert_eq!(TargetWeights::Uniform.weight(&cell(4.0)), 1.0);
         assert!(s.with_overrides("target_weights = \"area\"\n").is_err());
+    }
+
+    #[test]
+    fn rays_follow_the_mesh_in_the_presets_but_not_in_drt_or_the_warm_up() {
+        for preset in [Preset::Fast, Preset::Balanced, Preset::Accurate] {
+            let s = Settings::preset(preset);
+            assert_eq!(s.ray_edge_spacing, 0.4);
+            assert_eq!(s.stage(0).0.ray_edge_spacing, 0.0, "the warm-up is DRT's");
+            // The kept sample holds the last stage's rays: 0.4 of its edge apart.
+            let kept = s.kept_spacing_share();
+            assert!((kept - (0.4 * s.final_edge).min(s.ray_spacing / 2.0)).abs() < 1e-15);
+            assert!(kept <= 0.4 * s.final_edge);
+        }
+        let drt = Settings::preset(Preset::Drt);
+        assert_eq!(drt.ray_edge_spacing, 0.0);
+        assert_eq!(drt.kept_spacing_share(), drt.ray_spacing / 2.0);
+        let s = Settings::preset(Preset::Balanced);
+        for bad in ["-0.1", "10.5", "nan"] {
+            let over = s
+                .clone()
+                .with_overrides(&format!("ray_edge_spacing = {bad}\n"));
+            let err = over.and_then(|s| s.check().map(|_| s)).unwrap_err();
+            assert!(err.contains("ray_edge_spacing"), "{err}");
+        }
     }
 
     #[test]

@@ -1,20 +1,15 @@
 //! What a run reads from the scan, loaded once: refraction targets, silhouettes, and the
 //! fingerprint of the files they came from.
 //!
-//! A view's targets are kept as a fixed sample that puts its rays half `ray_spacing` apart at
-//! the object ([`STORED_DENSITY`] times as dense as an iteration's sample), so that memory, like
-//! the rays, follows the object and not the camera's pixel count
-//! (docs/decisions.md#rays-that-follow-the-scene).
+//! A view's targets are kept as a fixed sample dense enough for the finest rays the run draws
+//! ([`Settings::kept_spacing_share`]), so that memory, like the rays, follows the object and
+//! not the camera's pixel count (docs/decisions.md#rays-that-follow-the-scene).
 
 use super::config::Settings;
 use crate::loss::refraction::ViewTargets;
 use crate::scan::silhouette::Silhouette;
 use anyhow::{bail, Result};
 use nalgebra::Point3;
-
-/// How many times as dense as an iteration's sample the kept targets are (per area): an
-/// iteration draws a quarter of them where the camera's pixels are finer than the kept spacing.
-pub const STORED_DENSITY: f64 = 4.0;
 
 /// What the optimisation reads from the scan, loaded once.
 pub struct Inputs {
@@ -43,7 +38,7 @@ pub fn load_inputs(
     diagonal_mm: f64,
 ) -> Result<(Inputs, Vec<String>)> {
     let weights = settings.target_weights;
-    let spacing_mm = settings.ray_spacing * diagonal_mm / STORED_DENSITY.sqrt();
+    let spacing_mm = settings.kept_spacing_share() * diagonal_mm;
     let keep = |t: ViewTargets| {
         // At the camera's height on the turntable axis (the world frame's y axis).
         let share = t.share_for_spacing(&Point3::new(0.0, t.eye.y, 0.0), spacing_mm);

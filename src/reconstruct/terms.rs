@@ -202,9 +202,9 @@ fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
 /// Which of a view's kept pixels a term traces.
 #[derive(Clone, Copy, Debug)]
 pub(super) enum Sample {
-    /// The share of its decoded pixels that puts the rays `ray_spacing` of the mesh's diagonal
-    /// apart at the mesh's centre, drawn from those the run keeps from this offset in [0, 1)
-    /// ([`crate::loss::sample`]).
+    /// The share of its decoded pixels that puts the rays an iteration's spacing apart at the
+    /// mesh's centre ([`iteration_spacing_mm`]), drawn from those the run keeps from this offset
+    /// in [0, 1) ([`crate::loss::sample`]).
     Offset(f64),
     /// All it keeps (the held-out views' measure, which decides the result).
     AllKept,
@@ -244,10 +244,10 @@ pub(super) fn add_refraction(
         footprint: settings.footprint,
         bit_weight: settings.weight_bits,
     };
-    let (centre, diagonal) = mesh.bbox().map_or((Point3::origin(), 0.0), |(lo, hi)| {
-        (nalgebra::center(&lo, &hi), (hi - lo).norm())
-    });
-    let spacing_mm = settings.ray_spacing * diagonal;
+    let centre = mesh
+        .bbox()
+        .map_or(Point3::origin(), |(lo, hi)| nalgebra::center(&lo, &hi));
+    let spacing_mm = iteration_spacing_mm(mesh, settings);
     let vn = surface.vertex_normals();
     for &(v, sample) in views {
         let view = &inputs.targets[v];
@@ -261,6 +261,17 @@ pub(super) fn add_refraction(
         }
     }
     Ok(())
+}
+
+/// How far apart an iteration's rays lie at `mesh`, mm: `ray_spacing` of its bounding-box
+/// diagonal, or `ray_edge_spacing` of its mean edge where that is closer.
+fn iteration_spacing_mm(mesh: &TriMesh, settings: &Settings) -> f64 {
+    let coarse = settings.ray_spacing * mesh.bbox_diagonal();
+    if settings.ray_edge_spacing > 0.0 {
+        coarse.min(settings.ray_edge_spacing * mesh.mean_edge_length())
+    } else {
+        coarse
+    }
 }
 
 /// The silhouette term over the silhouettes `views`.
@@ -339,4 +350,28 @@ pub(super) fn membrane_term(
         }
     }
     (term, share)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::shapes::icosphere;
+    use crate::reconstruct::config::Preset;
+
+    #[test]
+    fn an_iterations_rays_follow_the_mesh_where_it_is_finer_than_the_diagonals_spacing() {
+        // A 40 mm sphere: mean edges of about 4.9 mm and 0.3 mm.
+        let (coarse, fine) = (icosphere(20.0, 2), icosphere(20.0, 6));
+        let s = Settings::preset(Preset::Balanced);
+        let by_diagonal = |m: &TriMesh| s.ray_spacing * m.bbox_diagonal();
+        assert_eq!(iteration_spacing_mm(&coarse, &s), by_diagonal(&coarse));
+        let by_edge = s.ray_edge_spacing * fine.mean_edge_length();
+        assert!(by_edge < by_diagonal(&fine));
+        assert_eq!(iteration_spacing_mm(&fine, &s), by_edge);
+        let off = Settings {
+            ray_edge_spacing: 0.0,
+            ..s
+        };
+        assert_eq!(iteration_spacing_mm(&fine, &off), by_diagonal(&fine));
+    }
 }

@@ -13,7 +13,6 @@ use super::terms::Sample;
 use serde::{Deserialize, Serialize};
 
 use super::config::Settings;
-use super::inputs::STORED_DENSITY;
 use super::Inputs;
 use crate::loss::silhouette::{outline_disagreement, pixels_per_unit};
 use crate::mesh::TriMesh;
@@ -183,13 +182,13 @@ pub fn validate_mesh(
 }
 
 /// The pixel stride of view `sil`'s outline test: the camera pixels in the kept rays' spacing
-/// (`ray_spacing` of `mesh`'s diagonal over √[`STORED_DENSITY`]) at the object, so that the
+/// ([`Settings::kept_spacing_share`] of `mesh`'s diagonal) at the object, so that the
 /// rays it traces follow the object, not the camera's pixel count; 1 where a pixel is coarser.
 fn outline_stride(mesh: &TriMesh, sil: &Silhouette, settings: &Settings) -> usize {
     let Some((lo, hi)) = mesh.bbox() else {
         return 1;
     };
-    let spacing_mm = settings.ray_spacing * (hi - lo).norm() / STORED_DENSITY.sqrt();
+    let spacing_mm = settings.kept_spacing_share() * (hi - lo).norm();
     let pixels = spacing_mm * pixels_per_unit(mesh, sil, 1.0);
     if pixels.is_finite() {
         (pixels.floor() as usize).max(1)
