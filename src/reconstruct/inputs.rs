@@ -1,9 +1,9 @@
 //! What a run reads from the scan, loaded once: refraction targets, silhouettes, and the
 //! fingerprint of the files they came from.
 //!
-//! A view's targets are kept as a fixed sample dense enough for the finest rays the run draws
-//! ([`Settings::kept_spacing_share`]), so that memory, like the rays, follows the object and
-//! not the camera's pixel count (docs/decisions.md#rays-that-follow-the-scene).
+//! A view's targets are kept as a fixed sample that puts its rays half `ray_spacing` apart at
+//! the object ([`Settings::kept_spacing_share`]), so that memory, like the rays, follows the
+//! object and not the camera's pixel count (docs/decisions.md#rays-that-follow-the-scene).
 
 use super::config::Settings;
 use crate::loss::refraction::ViewTargets;
