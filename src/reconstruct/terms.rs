@@ -244,10 +244,10 @@ pub(super) fn add_refraction(
         footprint: settings.footprint,
         bit_weight: settings.weight_bits,
     };
-    let centre = mesh
-        .bbox()
-        .map_or(Point3::origin(), |(lo, hi)| nalgebra::center(&lo, &hi));
-    let spacing_mm = iteration_spacing_mm(mesh, settings);
+    let (centre, diagonal) = mesh.bbox().map_or((Point3::origin(), 0.0), |(lo, hi)| {
+        (nalgebra::center(&lo, &hi), (hi - lo).norm())
+    });
+    let spacing_mm = iteration_spacing_mm(mesh, diagonal, settings);
     let vn = surface.vertex_normals();
     for &(v, sample) in views {
         let view = &inputs.targets[v];
@@ -263,10 +263,10 @@ pub(super) fn add_refraction(
     Ok(())
 }
 
-/// How far apart an iteration's rays lie at `mesh`, mm: `ray_spacing` of its bounding-box
-/// diagonal, or `ray_edge_spacing` of its mean edge where that is closer.
-fn iteration_spacing_mm(mesh: &TriMesh, settings: &Settings) -> f64 {
-    let coarse = settings.ray_spacing * mesh.bbox_diagonal();
+/// How far apart an iteration's rays lie at `mesh` (bounding-box diagonal `diagonal_mm`), mm:
+/// `ray_spacing` of the diagonal, or `ray_edge_spacing` of its mean edge where that is closer.
+fn iteration_spacing_mm(mesh: &TriMesh, diagonal_mm: f64, settings: &Settings) -> f64 {
+    let coarse = settings.ray_spacing * diagonal_mm;
     if settings.ray_edge_spacing > 0.0 {
         coarse.min(settings.ray_edge_spacing * mesh.mean_edge_length())
     } else {
@@ -363,15 +363,16 @@ mod tests {
         // A 40 mm sphere: mean edges of about 4.9 mm and 0.3 mm.
         let (coarse, fine) = (icosphere(20.0, 2), icosphere(20.0, 6));
         let s = Settings::preset(Preset::Balanced);
+        let spacing = |m: &TriMesh, s: &Settings| iteration_spacing_mm(m, m.bbox_diagonal(), s);
         let by_diagonal = |m: &TriMesh| s.ray_spacing * m.bbox_diagonal();
-        assert_eq!(iteration_spacing_mm(&coarse, &s), by_diagonal(&coarse));
+        assert_eq!(spacing(&coarse, &s), by_diagonal(&coarse));
         let by_edge = s.ray_edge_spacing * fine.mean_edge_length();
         assert!(by_edge < by_diagonal(&fine));
-        assert_eq!(iteration_spacing_mm(&fine, &s), by_edge);
+        assert_eq!(spacing(&fine, &s), by_edge);
         let off = Settings {
             ray_edge_spacing: 0.0,
-            ..s
+            ..s.clone()
         };
-        assert_eq!(iteration_spacing_mm(&fine, &off), by_diagonal(&fine));
+        assert_eq!(spacing(&fine, &off), by_diagonal(&fine));
     }
 }
