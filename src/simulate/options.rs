@@ -148,6 +148,12 @@ pub(super) fn check_options(o: &SimulateOptions) -> Result<()> {
     if o.views == 0 || o.spp == 0 || o.max_refractions == 0 {
         bail!("views, spp and max refractions must be at least 1");
     }
+    if o.spp == 2 {
+        bail!(
+            "--spp 2: a pixel's area samples include its centre and are centred on it, which two \
+             samples cannot be; use --spp 1 (centres only) or 3 or more"
+        );
+    }
     if !(o.noise >= 0.0 && o.blur_px >= 0.0) {
         bail!("noise and blur must not be negative");
     }

@@ -158,6 +158,7 @@ fn sizes_beyond_the_budget_are_refused_before_allocating() {
     for (args, needle) in [
         (vec!["--views", "100000000"], "--views"),
         (vec!["--spp", "1000000"], "--spp"),
+        (vec!["--spp", "2"], "--spp 2"),
         (vec!["--screen", "100000x100000"], "between 1 and 16384"),
         (vec!["--ior", "nan"], "--ior"),
         (vec!["--fill", "0"], "(0, 1]"),
