@@ -128,6 +128,26 @@ fn simulate_replaces_a_scan_whole_or_not_at_all() {
 }
 
 /// Sizes that would allocate beyond the memory limit, or take forever, are refused up front.
+/// Two area samples cannot be centred on the pixel with its centre among them: `simulate`
+/// refuses them before writing anything.
+#[test]
+fn two_area_samples_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let ball = write(dir.path(), "ball.ply", &icosphere(20.0, 2));
+    let out = dir.path().join("never");
+    let o = glasscan(&[
+        "simulate",
+        "--mesh",
+        s(&ball),
+        "--out",
+        s(&out),
+        "--spp",
+        "2",
+    ]);
+    refused_with(&o, 1, "--spp 2");
+    assert!(!out.exists());
+}
+
 #[test]
 fn sizes_beyond_the_budget_are_refused_before_allocating() {
     let dir = tempfile::tempdir().unwrap();
@@ -167,18 +187,6 @@ fn sizes_beyond_the_budget_are_refused_before_allocating() {
         refused_with(&glasscan(&a), 2, needle);
         assert!(!Path::new("never").exists());
     }
-    // Two area samples cannot be centred on the pixel with its centre among them.
-    let o = glasscan(&[
-        "simulate",
-        "--mesh",
-        s(&ball),
-        "--out",
-        "never",
-        "--spp",
-        "2",
-    ]);
-    refused_with(&o, 1, "--spp 2");
-    assert!(!Path::new("never").exists());
     // A PLY header promising more vertices than memory holds.
     let ply = dir.path().join("huge.ply");
     std::fs::write(
