@@ -138,13 +138,17 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         }
         let n: usize = rows.iter().map(|c| c.compared).sum();
         let valid: usize = rows.iter().map(|c| c.valid).sum();
+        let direct_offset = Comparison::overall_direct_offset_px(&rows);
+        let direct: usize = rows.iter().map(|c| c.direct_compared).sum();
         let w = |f: fn(&Comparison) -> f64| {
             rows.iter().map(|c| f(c) * c.compared as f64).sum::<f64>() / n.max(1) as f64
         };
         outln!(
-            "overall: mean mask IoU {:.4}; decoded outline {:+.3} px from the true one (> 0: outside); {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
+            "overall: mean mask IoU {:.4}; decoded outline {:+.3} px from the true one (> 0: outside); the monitor seen directly decoded at ({:+.3}, {:+.3}) camera px from the truth (x, y; {direct} px); {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
             rows.iter().map(|c| c.mask_iou).sum::<f64>() / rows.len().max(1) as f64,
             Comparison::overall_edge_offset_px(&rows),
+            direct_offset[0],
+            direct_offset[1],
             100.0 * n as f64 / valid.max(1) as f64,
             100.0 * w(|c| c.within_1px_footprint),
             100.0 * w(|c| c.within_uncertainty_footprint),

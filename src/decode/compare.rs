@@ -30,6 +30,13 @@ pub struct Comparison {
     pub mask_missing: usize,
     /// Pixels of the true silhouette with a 4-neighbour outside it (its outline's length, px).
     pub outline: usize,
+    /// Pixels outside both silhouettes (the monitor seen without the object) with a decoded and
+    /// a true point.
+    pub direct_compared: usize,
+    /// Their mean offset, decoded − true pixel-centre point, in camera pixels (x right, y down;
+    /// the monitor offset mapped back through the view's mean monitor-per-camera-pixel
+    /// Jacobian): a camera-side bias of the capture or the decoder, whatever the resolution.
+    pub direct_offset_px: [f64; 2],
 }
 
 impl Comparison {
@@ -46,6 +53,46 @@ impl Comparison {
             .map(|c| c.mask_extra as f64 - c.mask_missing as f64)
             .sum();
         signed / rows.iter().map(|c| c.outline).sum::<usize>().max(1) as f64
+    }
+
+    /// [`Self::direct_offset_px`] over several views together (weighted by their pixels).
+    pub fn overall_direct_offset_px(rows: &[Comparison]) -> [f64; 2] {
+        let n = rows.iter().map(|c| c.direct_compared).sum::<usize>().max(1) as f64;
+        [0, 1].map(|i| {
+            rows.iter()
+                .map(|c| c.direct_offset_px[i] * c.direct_compared as f64)
+                .sum::<f64>()
+                / n
+        })
+    }
+}
+
+/// The monitor seen without the object: sums of the decoded − true offsets (monitor pixels) and
+/// of the true points' steps between neighbouring camera pixels (the Jacobian ∂(u, v)/∂(x, y)).
+#[derive(Default)]
+struct DirectView {
+    offset: [f64; 2],
+    count: usize,
+    /// Σ ∂(u, v)/∂x over horizontal neighbours, and their count; the same for ∂/∂y.
+    dx: ([f64; 2], usize),
+    dy: ([f64; 2], usize),
+}
+
+impl DirectView {
+    /// The mean offset in camera pixels: J⁻¹ · mean monitor offset (zero without pixels or with
+    /// a degenerate Jacobian).
+    fn offset_px(&self) -> [f64; 2] {
+        let mean = |(s, n): ([f64; 2], usize)| s.map(|v| v / n.max(1) as f64);
+        let (jx, jy) = (mean(self.dx), mean(self.dy));
+        let det = jx[0] * jy[1] - jy[0] * jx[1];
+        let o = self.offset.map(|v| v / self.count.max(1) as f64);
+        if self.count == 0 || !det.is_normal() {
+            return [0.0; 2];
+        }
+        [
+            (jy[1] * o[0] - jy[0] * o[1]) / det,
+            (-jx[1] * o[0] + jx[0] * o[1]) / det,
+        ]
     }
 }
 
@@ -106,6 +153,7 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
         }
     }
     let n = e_foot.len();
+    let direct = direct_view((&m, &tm), &mon, &centre, &unfix)?;
     Ok(Comparison {
         view: k,
         mask_iou: inter as f64 / union.max(1) as f64,
@@ -119,7 +167,50 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
         mask_extra: extra,
         mask_missing: missing,
         outline: outline_length(tm.data_bytes()?, tm.cols() as usize),
+        direct_compared: direct.count,
+        direct_offset_px: direct.offset_px(),
     })
+}
+
+/// The monitor seen without the object in a view: pixels outside both `masks` (decoded, true)
+/// whose true centre point exists, against the decoded points `mon` (fixed point, read with
+/// `unfix`).
+fn direct_view(
+    (m, tm): (&Mat, &Mat),
+    mon: &Mat,
+    centre: &Mat,
+    unfix: &impl Fn(u16) -> f64,
+) -> Result<DirectView> {
+    // The true point of pixel (x, y) where it shows the monitor directly.
+    let truth = |x: i32, y: i32| -> Result<Option<[f64; 2]>> {
+        if x >= m.cols() || y >= m.rows() {
+            return Ok(None);
+        }
+        let inside = *m.at_2d::<u8>(y, x)? == 255 || *tm.at_2d::<u8>(y, x)? == 255;
+        let c = *centre.at_2d::<Vec3w>(y, x)?;
+        Ok((!inside && c[0] != NONE).then(|| [unfix(c[0]), unfix(c[1])]))
+    };
+    let mut dv = DirectView::default();
+    for y in 0..m.rows() {
+        for x in 0..m.cols() {
+            let Some(t) = truth(x, y)? else { continue };
+            let d = *mon.at_2d::<Vec4w>(y, x)?;
+            if d[0] != NONE {
+                dv.offset[0] += unfix(d[0]) - t[0];
+                dv.offset[1] += unfix(d[1]) - t[1];
+                dv.count += 1;
+            }
+            for (next, (sum, n)) in [
+                (truth(x + 1, y)?, &mut dv.dx),
+                (truth(x, y + 1)?, &mut dv.dy),
+            ] {
+                if let Some(q) = next {
+                    (sum[0], sum[1], *n) = (sum[0] + q[0] - t[0], sum[1] + q[1] - t[1], *n + 1);
+                }
+            }
+        }
+    }
+    Ok(dv)
 }
 
 /// Pixels of the `width`-wide mask `m` (row-major, 255 inside) with a 4-neighbour outside it or
