@@ -453,8 +453,9 @@ fn the_monitor_seen_directly_decodes_where_the_camera_looks() {
     // The monitor around the object, decoded from area-sampled, blurred, noisy captures, lies
     // where the calibrated camera's pixel centres see it: a camera shifted against its
     // calibration (as `simulate` was by its off-centre area samples before 0.10.0, 0.19 px) or a
-    // decoder biased along the code's bits moves the whole picture. Measured here (+0.04, +0.05)
-    // px: what is left of 4 samples under the Gray code's thresholds.
+    // decoder biased along the code's bits moves the whole picture. Measured here (+0.048,
+    // +0.051) px, what is left of 4 samples under the Gray code's thresholds; with the
+    // off-centre samples (−0.098, −0.152).
     // A camera pixel spans about 4 monitor pixels, as in a rig (finer than that, the decoded
     // cell's quantisation, a sawtooth in the pixel's phase, does not average out over one view).
     let dir = tempfile::tempdir().unwrap();
