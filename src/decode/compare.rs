@@ -85,10 +85,10 @@ impl DirectView {
         let mean = |(s, n): ([f64; 2], usize)| s.map(|v| v / n.max(1) as f64);
         let (jx, jy) = (mean(self.dx), mean(self.dy));
         let det = jx[0] * jy[1] - jy[0] * jx[1];
-        let o = self.offset.map(|v| v / self.count.max(1) as f64);
         if self.count == 0 || !det.is_normal() {
             return [0.0; 2];
         }
+        let o = self.offset.map(|v| v / self.count as f64);
         [
             (jy[1] * o[0] - jy[0] * o[1]) / det,
             (-jx[1] * o[0] + jx[0] * o[1]) / det,
@@ -183,32 +183,36 @@ fn direct_view(
 ) -> Result<DirectView> {
     // The true point of pixel (x, y) where it shows the monitor directly.
     let truth = |x: i32, y: i32| -> Result<Option<[f64; 2]>> {
-        if x >= m.cols() || y >= m.rows() {
-            return Ok(None);
-        }
         let inside = *m.at_2d::<u8>(y, x)? == 255 || *tm.at_2d::<u8>(y, x)? == 255;
         let c = *centre.at_2d::<Vec3w>(y, x)?;
         Ok((!inside && c[0] != NONE).then(|| [unfix(c[0]), unfix(c[1])]))
     };
+    // Each pixel's truth read once: a row, and the row above it for the vertical steps.
+    let step = |(sum, n): &mut ([f64; 2], usize), from: [f64; 2], to: Option<[f64; 2]>| {
+        if let Some(q) = to {
+            (sum[0], sum[1], *n) = (sum[0] + q[0] - from[0], sum[1] + q[1] - from[1], *n + 1);
+        }
+    };
     let mut dv = DirectView::default();
+    let mut above: Vec<Option<[f64; 2]>> = vec![None; m.cols().max(0) as usize];
     for y in 0..m.rows() {
-        for x in 0..m.cols() {
-            let Some(t) = truth(x, y)? else { continue };
-            let d = *mon.at_2d::<Vec4w>(y, x)?;
+        let row = (0..m.cols())
+            .map(|x| truth(x, y))
+            .collect::<Result<Vec<_>>>()?;
+        for (x, t) in row.iter().enumerate() {
+            let Some(t) = *t else { continue };
+            let d = *mon.at_2d::<Vec4w>(y, x as i32)?;
             if d[0] != NONE {
                 dv.offset[0] += unfix(d[0]) - t[0];
                 dv.offset[1] += unfix(d[1]) - t[1];
                 dv.count += 1;
             }
-            for (next, (sum, n)) in [
-                (truth(x + 1, y)?, &mut dv.dx),
-                (truth(x, y + 1)?, &mut dv.dy),
-            ] {
-                if let Some(q) = next {
-                    (sum[0], sum[1], *n) = (sum[0] + q[0] - t[0], sum[1] + q[1] - t[1], *n + 1);
-                }
+            step(&mut dv.dx, t, row.get(x + 1).copied().flatten());
+            if let Some(a) = above[x] {
+                step(&mut dv.dy, a, Some(t));
             }
         }
+        above = row;
     }
     Ok(dv)
 }
