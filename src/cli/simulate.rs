@@ -45,7 +45,8 @@ pub struct SimulateArgs {
     /// Sensor noise, standard deviation in grey levels.
     #[arg(long, default_value_t = 0.0, value_parser = non_negative)]
     pub noise: f64,
-    /// Gaussian blur of the captures, sigma in pixels.
+    /// Gaussian blur of the captures, sigma in pixels (at most 5; recorded in scan.toml as
+    /// `blur_px`, which `reconstruct` corrects for).
     #[arg(long = "blur", default_value_t = 0.0, value_parser = non_negative)]
     pub blur_px: f64,
     /// Refractions traced before a path is given up.

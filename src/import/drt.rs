@@ -443,6 +443,7 @@ fn imported_scan(
         .collect();
     let config = ScanConfig {
         ior: crate::scan::Ior::Known(ior),
+        blur_px: None,
         calibration: CalibrationFiles {
             camera: "camera.yml".into(),
             screen: "screen.yml".into(),

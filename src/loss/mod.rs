@@ -9,6 +9,7 @@
 //! would not be finite are dropped and counted in [`Drops`], never added.
 
 pub mod bits;
+pub mod blur;
 pub mod diff;
 pub mod membrane;
 pub mod refraction;

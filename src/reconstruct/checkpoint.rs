@@ -60,11 +60,18 @@ pub struct StageReport {
     /// ([`WarmUpVerdict`]); its mesh is the start mesh.
     #[serde(default)]
     pub skipped: bool,
+    /// How far the stage's decoded points were moved for the camera's blur, on its start mesh
+    /// (`None`: no blur corrected for, or a warm-up stage).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blur: Option<crate::loss::blur::CorrectionSummary>,
 }
 
 /// Where a stage's wall time went, seconds, and how fast it traced.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CostProfile {
+    /// Correcting the decoded points for the camera's blur on the stage's start mesh.
+    #[serde(default)]
+    pub blur: f64,
     /// Remeshing to the stage's edge length, with its sizing field (the rays that measure
     /// where the data pulls, `sizing_pull`, included).
     pub remesh: f64,

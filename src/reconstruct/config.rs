@@ -136,6 +136,14 @@ pub struct Settings {
     /// contrasts).
     #[serde(default)]
     pub weight_bits: f64,
+    /// Correct the decoded points for the camera's blur (`blur_px` in scan.toml): at the start
+    /// of every stage after the warm-up, and for the result's held-out fit, each pixel's point
+    /// moves by where its blurred neighbourhood's vote lands off its centre ray's
+    /// ([`crate::loss::blur`]). Off in the presets: it costs about 6 s a stage on a 640×480
+    /// scan (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur). Idle for a sharp
+    /// camera.
+    #[serde(default)]
+    pub blur_correction: bool,
     /// The robust penalty's scale in the first stage after the warm-up, as a multiple of
     /// `robust`'s; it shrinks geometrically to `robust`'s at the last stage (graduated
     /// non-convexity: far from the shape every residual is large, and a small scale would
@@ -347,6 +355,7 @@ impl Settings {
             grazing_cell_footprints: 3.0,
             footprint: 1,
             weight_bits: 0.01,
+            blur_correction: false,
             robust_anneal: 1.0,
             average_share: 0.5,
             weight_membrane: 10.0,

@@ -26,11 +26,14 @@ use crate::mesh::TriMesh;
 use crate::scan::{Ior, MAX_IOR};
 use crate::trace::path::MeshSurface;
 
-/// The settings of the index pass: `settings`' warm-up and the first stage of its schedule.
+/// The settings of the index pass: `settings`' warm-up and the first stage of its schedule, no
+/// blur correction.
 pub fn pass_settings(settings: &Settings) -> Settings {
     Settings {
         stages: 1,
         final_edge: settings.start_edge,
+        // Its coarse mesh is too far from the object to correct the points on.
+        blur_correction: false,
         ..settings.clone()
     }
 }

@@ -5,9 +5,13 @@
 //! the object ([`Settings::kept_spacing_share`]), so that memory, like the rays, follows the
 //! object and not the camera's pixel count (docs/decisions.md#rays-that-follow-the-scene).
 
+use std::sync::Arc;
+
 use super::config::Settings;
+use crate::loss::blur::{correct_targets, BlurKernel, CorrectionSummary};
 use crate::loss::refraction::ViewTargets;
 use crate::scan::silhouette::Silhouette;
+use crate::trace::path::Surface;
 use anyhow::{bail, Result};
 use nalgebra::Point3;
 
@@ -21,7 +25,11 @@ pub struct Inputs {
     /// Per view of `targets`, the share of its decoded pixels kept (their weights carry its
     /// inverse).
     pub kept_shares: Vec<f64>,
-    pub silhouettes: Vec<Silhouette>,
+    /// Shared with the inputs [`Inputs::deblurred`] makes.
+    pub silhouettes: Arc<Vec<Silhouette>>,
+    /// The camera's blur (scan.toml's `blur_px`), which a run whose settings have
+    /// `blur_correction` corrects the decoded points for.
+    pub blur: Option<BlurKernel>,
     /// What the inputs were read from ([`fingerprint`]); a run resumes only from the same.
     pub fingerprint: super::fingerprint::Fingerprint,
 }
@@ -75,9 +83,45 @@ pub fn load_inputs(
             ior_start: None,
             targets,
             kept_shares,
-            silhouettes,
+            silhouettes: Arc::new(silhouettes),
+            blur: scan.config.blur_px.and_then(BlurKernel::gaussian),
             fingerprint: super::fingerprint::of_scan(scan, views)?,
         },
         warnings,
     ))
+}
+
+impl Inputs {
+    /// These inputs with the decoded points of the targets `views` (indices into `targets`;
+    /// `None`: all) corrected for the camera's blur through the mesh `surface` holds at
+    /// refractive index `ior` ([`crate::loss::blur`]), and how far they moved; `None` without a
+    /// blur to correct for.
+    pub fn deblurred(
+        &self,
+        surface: &dyn Surface,
+        ior: f64,
+        views: Option<&[usize]>,
+    ) -> Result<Option<(Inputs, CorrectionSummary)>> {
+        let Some(kernel) = &self.blur else {
+            return Ok(None);
+        };
+        let chosen: Vec<usize> =
+            views.map_or_else(|| (0..self.targets.len()).collect(), <[usize]>::to_vec);
+        let picked: Vec<ViewTargets> = chosen.iter().map(|&t| self.targets[t].clone()).collect();
+        let (corrected, summary) = correct_targets(surface, ior, kernel, &picked)?;
+        let mut targets = self.targets.clone();
+        for (t, view) in chosen.into_iter().zip(corrected) {
+            targets[t] = view;
+        }
+        let inputs = Inputs {
+            ior: self.ior,
+            ior_start: self.ior_start,
+            targets,
+            kept_shares: self.kept_shares.clone(),
+            silhouettes: Arc::clone(&self.silhouettes),
+            blur: self.blur.clone(),
+            fingerprint: self.fingerprint.clone(),
+        };
+        Ok(Some((inputs, summary)))
+    }
 }

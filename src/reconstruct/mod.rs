@@ -294,7 +294,8 @@ mod tests {
             ior_start: None,
             targets: Vec::new(),
             kept_shares: Vec::new(),
-            silhouettes: Vec::new(),
+            silhouettes: Default::default(),
+            blur: None,
             fingerprint: Default::default(),
         };
         checkpoint.stages_done = checkpoint.settings.warmup_stages;
@@ -357,7 +358,8 @@ mod tests {
                 ..view_down_z(100.0, (500.0, 500.0))
             }],
             kept_shares: vec![1.0],
-            silhouettes: Vec::new(),
+            silhouettes: Default::default(),
+            blur: None,
             fingerprint: Default::default(),
         };
         let measured = PixelBits {

@@ -91,6 +91,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     for w in &warnings {
         progress.note(&format!("warning: {w}"));
     }
+    note_the_blur(scan, &inputs, &settings, progress);
     let given = inputs.ior;
     if given.is_auto() {
         let main_committed = matches!(existing, Existing::Run(_));
@@ -108,7 +109,8 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     // One ray-tracing structure of the result serves the index search, the confidence and its map.
     let settings = &finished.checkpoint.settings;
     let surface = MeshSurface::with_mode(&result, settings.normals, BuildMode::Static)?;
-    let index = index_report(&inputs, given, (&finished, result_stage, &surface))?;
+    let used = used_index(&inputs, &finished, result_stage);
+    let index = index_report(&inputs, given, (&finished, used, &surface))?;
     if let Some(w) = index.warning() {
         progress.note(&format!("warning: {w}"));
         warnings.push(w);
@@ -192,18 +194,44 @@ fn index_pass(
     Ok(Ok(estimate))
 }
 
-/// The index the result was made at (`given`, or its stage's estimate) and the held-out
-/// fit of the result (`finished`'s stage `result_stage`, mesh `result`) about it.
+/// Says when the run corrects the decoded points for the camera's blur.
+fn note_the_blur(scan: &Scan, inputs: &Inputs, settings: &Settings, progress: &dyn Progress) {
+    if let (Some(sigma), Some(_), true) =
+        (scan.config.blur_px, &inputs.blur, settings.blur_correction)
+    {
+        progress.note(&format!(
+            "the camera's blur (σ {sigma} px, scan.toml): each stage after the warm-up corrects the decoded points for it on its start mesh, the held-out fit on the result"
+        ));
+    }
+}
+
+/// The index the result (`finished`'s stage `result_stage`) was made at: the given one, or its
+/// stage's estimate.
+fn used_index(inputs: &Inputs, finished: &Finished, result_stage: usize) -> f64 {
+    (finished.checkpoint.stages.get(result_stage))
+        .and_then(|r| r.ior)
+        .unwrap_or_else(|| inputs.ior.nominal())
+}
+
+/// The index the result was made at, `used` (`given`, or its stage's estimate), and the
+/// held-out fit of the result (mesh `result`, of `finished`) about it, with the held-out
+/// views' points corrected for the camera's blur on the result when the run corrects.
 fn index_report(
     inputs: &Inputs,
     given: Ior,
-    (finished, result_stage, result): (&Finished, usize, &MeshSurface),
+    (finished, used, result): (&Finished, f64, &MeshSurface),
 ) -> Result<IndexReport> {
     let settings = &finished.checkpoint.settings;
-    let used = (finished.checkpoint.stages.get(result_stage))
-        .and_then(|r| r.ior)
-        .unwrap_or_else(|| inputs.ior.nominal());
     let split = Split::new(inputs, settings.validation_share);
+    // The held-out views' points corrected for the camera's blur on the result.
+    let deblurred = if settings.blur_correction {
+        inputs.deblurred(result, used, Some(&split.held_targets))?
+    } else {
+        None
+    };
+    let inputs = deblurred
+        .as_ref()
+        .map_or(inputs, |(corrected, _)| corrected);
     let from = (used, index::search_range(given));
     Ok(IndexReport {
         given,

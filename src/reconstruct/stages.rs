@@ -101,6 +101,12 @@ pub(super) fn run_next_stage(
         ));
     }
     let ior = checkpoint.index(inputs);
+    let deblurred = deblur_for_stage(inputs, checkpoint, (mesh, ior), s)?;
+    let seconds_blur = t0.elapsed().as_secs_f64();
+    let (inputs, blur) = match &deblurred {
+        Some((corrected, summary)) => (corrected, Some(*summary)),
+        None => (inputs, None),
+    };
     let free = index_free(inputs, &checkpoint.settings, s);
     let mut opts = remesh_options(&phase, edge_mm);
     if opts.adaptive.is_some() {
@@ -108,7 +114,7 @@ pub(super) fn run_next_stage(
             .with_context(|| format!("stage {s}: measuring where the data pulls"))?;
     }
     let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
-    let seconds_remesh = t0.elapsed().as_secs_f64();
+    let seconds_remesh = t0.elapsed().as_secs_f64() - seconds_blur;
     let stages = checkpoint.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
     let (report, mean) = run_stage(
@@ -130,7 +136,9 @@ pub(super) fn run_next_stage(
         degenerate_faces: check_stage_mesh(&mesh, s)?,
         validation,
         averaged,
+        blur,
         profile: CostProfile {
+            blur: seconds_blur,
             remesh: seconds_remesh,
             validation: t_validation.elapsed().as_secs_f64(),
             ..report.profile
@@ -141,6 +149,27 @@ pub(super) fn run_next_stage(
     checkpoint.stages.push(report);
     checkpoint.stages_done += 1;
     Ok(mesh)
+}
+
+/// The inputs of stage `s` of a run with a blurred camera: in the schedule's last stage (whose
+/// start mesh is the closest to the object a run has before its end), the decoded points
+/// corrected on that mesh at index `ior`, and how far they moved; `None` in every other stage,
+/// and without a blur or with `blur_correction` off
+/// (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur).
+fn deblur_for_stage(
+    inputs: &Inputs,
+    checkpoint: &Checkpoint,
+    (mesh, ior): (&TriMesh, f64),
+    s: usize,
+) -> Result<Option<(Inputs, crate::loss::blur::CorrectionSummary)>> {
+    let settings = &checkpoint.settings;
+    if !settings.blur_correction || s < settings.warmup_stages {
+        return Ok(None);
+    }
+    let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
+    inputs
+        .deblurred(&surface, ior, None)
+        .with_context(|| format!("stage {s}: correcting the decoded points for the blur"))
 }
 
 /// The stage's mesh: its last iterate (in `mesh`) or the mean of its last iterates, whichever
@@ -261,6 +290,7 @@ pub(super) fn run_stage(
         },
         ior: Some(index.as_ref().map_or(ior, |x| x.estimate())),
         skipped: false,
+        blur: None,
     };
     Ok((report, tail.mean()))
 }

@@ -11,6 +11,7 @@
 //! ```toml
 //! ior = 1.4723                  # refractive index of the object; "auto" (estimated within
 //!                               # 1.40–1.70) or { auto = [1.45, 1.60] } when unknown
+//! blur_px = 0.7                 # optional: the camera's blur, a Gaussian's σ in camera pixels
 //! [calibration]
 //! camera = "camera.yml"         # paths relative to the scan folder
 //! screen = "screen.yml"
@@ -38,11 +39,20 @@ use crate::patterns::{GrayCode, PhaseShift};
 use crate::rig::{calib_io, Camera, Screen, Turntable};
 use crate::util::atomic::write_atomic;
 
+/// The widest camera blur `scan.toml` may give (σ, camera pixels): a capture blurred more
+/// than this resolves no Gray bit finer than a dozen camera pixels.
+pub const MAX_BLUR_PX: f64 = 5.0;
+
 /// The contents of `scan.toml`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ScanConfig {
     pub ior: Ior,
+    /// The camera's blur as the captures show it (focus, optics, the sensor's spread): the σ of
+    /// a Gaussian point-spread function, camera pixels; absent or 0: sharp. A reconstruction
+    /// corrects the decoded points for it ([`crate::loss::blur`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blur_px: Option<f64>,
     pub calibration: CalibrationFiles,
     pub views: Views,
     pub patterns: Patterns,
@@ -323,6 +333,12 @@ impl ScanConfig {
             return Err(bad(format!(
                 "views.angles_deg holds {}: turntable angles are degrees within ±{MAX_ANGLE_DEG}",
                 crate::util::short_number(*a)
+            )));
+        }
+        if let Some(b) = config.blur_px.filter(|b| !(0.0..=MAX_BLUR_PX).contains(b)) {
+            return Err(bad(format!(
+                "blur_px = {}: the camera's blur is a Gaussian's σ in camera pixels, 0 to {MAX_BLUR_PX} (leave it out for a sharp camera)",
+                crate::util::short_number(b)
             )));
         }
         if let Some(p) = config.patterns.phase_shift {

@@ -225,6 +225,8 @@ fn rig_scan(dir: &Path, o: &SimulateOptions, object: &Placed) -> Result<Scan> {
     };
     let config = ScanConfig {
         ior: Ior::Known(o.ior),
+        // The captures' blur, which a reconstruction corrects for (none without captures).
+        blur_px: (o.blur_px > 0.0 && !o.decoded_only).then_some(o.blur_px),
         calibration: CalibrationFiles {
             camera: "camera.yml".into(),
             screen: "screen.yml".into(),

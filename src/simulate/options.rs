@@ -157,6 +157,13 @@ pub(super) fn check_options(o: &SimulateOptions) -> Result<()> {
     if !(o.noise >= 0.0 && o.blur_px >= 0.0) {
         bail!("noise and blur must not be negative");
     }
+    if o.blur_px > crate::scan::MAX_BLUR_PX {
+        bail!(
+            "--blur {}: at most {} camera pixels",
+            o.blur_px,
+            crate::scan::MAX_BLUR_PX
+        );
+    }
     if o.distortion.iter().any(|d| d.is_nan() || d.abs() >= 1.0) {
         bail!("distortion coefficients must be finite and below 1 in size");
     }

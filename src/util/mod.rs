@@ -29,6 +29,31 @@ pub fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// The weighted median of `values` (value, weight ≥ 0), interpolated: each value stands at the
+/// middle of its weight on the cumulative scale, and the median is read between the two values
+/// that straddle half the total. `None` without weight.
+pub fn interpolated_median(mut values: Vec<(f64, f64)>) -> Option<f64> {
+    let total: f64 = values.iter().map(|v| v.1).sum();
+    if !(total > 0.0 && total.is_finite()) {
+        return None;
+    }
+    values.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let half = 0.5 * total;
+    let (mut below, mut before) = (0.0, None::<(f64, f64)>);
+    for &(x, w) in &values {
+        let at = below + 0.5 * w;
+        below += w;
+        if at >= half {
+            return Some(match before {
+                Some((bx, b_at)) if at > b_at => bx + (x - bx) * (half - b_at) / (at - b_at),
+                _ => x,
+            });
+        }
+        before = Some((x, at));
+    }
+    values.last().map(|v| v.0)
+}
+
 /// The weighted median of `(value, weight)` pairs: the first value, in ascending order (ties in
 /// the given order), at which the weights reach half their sum; `None` for no pairs.
 pub fn weighted_median(mut pairs: Vec<(f64, f64)>) -> Option<f64> {
@@ -52,6 +77,21 @@ pub fn scatter_seed(seed: u64) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_interpolated_median_reads_between_the_middle_values() {
+        let m = |v: &[(f64, f64)]| interpolated_median(v.to_vec());
+        assert_eq!(m(&[(3.0, 1.0)]), Some(3.0));
+        // Four equal weights: halfway between the second and third values, in any order.
+        assert_eq!(
+            m(&[(4.0, 1.0), (1.0, 1.0), (3.0, 1.0), (2.0, 1.0)]),
+            Some(2.5)
+        );
+        // A heavy value holds the median.
+        assert_eq!(m(&[(0.0, 1.0), (10.0, 5.0), (20.0, 1.0)]), Some(10.0));
+        assert_eq!(m(&[(1.0, 0.0)]), None);
+        assert_eq!(m(&[]), None);
+    }
 
     #[test]
     fn the_weighted_median_is_where_the_weights_reach_half() {

@@ -4,6 +4,7 @@
 
 mod common;
 
+mod blur;
 mod calibrate;
 mod calibration_files;
 mod capture;

@@ -320,8 +320,9 @@ fn commands_killed_anywhere_are_put_right_by_the_next_run() {
     assert!(left.is_empty(), "{left:?}");
 }
 
-/// Rows 8 and 9: an index out of (1, 4], angles that are not turntable angles, and capture
-/// folders without an angle are refused where the scan is opened, in short words.
+/// Rows 8 and 9: an index out of (1, 4], a camera blur out of 0–5 px, angles that are not
+/// turntable angles, and capture folders without an angle are refused where the scan is opened,
+/// in short words.
 #[test]
 fn scan_values_out_of_range_are_refused() {
     let dir = tempfile::tempdir().unwrap();
@@ -332,11 +333,15 @@ fn scan_values_out_of_range_are_refused() {
     let start = toml.find("angles_deg").unwrap();
     let angles = &toml[start..start + toml[start..].find(']').unwrap() + 1];
     let decode = || glasscan(&["decode", s(&scan)]);
+    let blur = |v: &str| format!("{ior}\nblur_px = {v}");
     for (line, want) in [
-        ("ior = 100.0", "refractive index lies in (1, 4]"),
-        ("ior = 1e300", "ior = 1e300: a solid"),
+        ("ior = 100.0".to_string(), "refractive index lies in (1, 4]"),
+        ("ior = 1e300".to_string(), "ior = 1e300: a solid"),
+        (blur("-1"), "blur_px = -1: the camera's blur"),
+        (blur("nan"), "blur_px = NaN: the camera's blur"),
+        (blur("80"), "0 to 5 (leave it out"),
     ] {
-        std::fs::write(&toml_path, toml.replace(ior, line)).unwrap();
+        std::fs::write(&toml_path, toml.replace(ior, &line)).unwrap();
         refused(&decode(), want);
     }
     std::fs::write(
