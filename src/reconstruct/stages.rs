@@ -151,11 +151,12 @@ pub(super) fn run_next_stage(
     Ok(mesh)
 }
 
-/// The inputs of stage `s` of a run with a blurred camera: in the schedule's last stage (whose
-/// start mesh is the closest to the object a run has before its end), the decoded points
-/// corrected on that mesh at index `ior`, and how far they moved; `None` in every other stage,
-/// and without a blur or with `blur_correction` off
-/// (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur).
+/// The inputs of stage `s` of a run with a blurred camera: after the warm-up, the decoded points
+/// corrected on the stage's start `mesh` at index `ior`, and how far they moved; `None` in the
+/// warm-up (DRT's steps carve the hull, whose rims are far from the object's), without a blur,
+/// and with `blur_correction` off (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur).
+/// The stage's held-out fit compares its mesh with these points, so stages' fits compare each
+/// stage with its own correction.
 fn deblur_for_stage(
     inputs: &Inputs,
     checkpoint: &Checkpoint,

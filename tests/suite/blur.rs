@@ -1,14 +1,14 @@
 //! A blurred camera's decoded points against the centre-ray model, with and without the blur
 //! correction (`glasscan::loss::blur`).
 
-use crate::common::glasscan;
+use crate::common::{fine_monitor_ellipsoid, glasscan};
 use glasscan::loss::blur::{correct_targets, BlurKernel};
 use glasscan::loss::refraction::ViewTargets;
 use glasscan::loss::targets::scan_targets;
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::mesh::TriMesh;
 use glasscan::scan::Scan;
-use glasscan::simulate::{simulate, SimulateOptions};
+use glasscan::simulate::SimulateOptions;
 use glasscan::trace::path::{trace_paths, MeshSurface, NormalModel, PathEnd, PathSettings};
 use glasscan::trace::Ray;
 use nalgebra::Vector3;
@@ -48,21 +48,15 @@ fn a_blurred_cameras_decoded_points_corrected_for_the_blur_meet_the_centre_rays(
     // off the point its centre ray reaches, even on the true shape at the true index.
     // Corrected on the true shape, the decoded points lie nearer the centre rays' points.
     let dir = tempfile::tempdir().unwrap();
-    let scan_dir = dir.path().join("scan");
     let opts = SimulateOptions {
         views: 3,
-        width: 320,
-        height: 240,
-        screen_width: 1920,
-        screen_height: 1200,
-        pitch_mm: 0.2,
         spp: 4,
         blur_px: 1.0,
         ior: IOR,
         ..Default::default()
     };
+    let scan_dir = fine_monitor_ellipsoid(dir.path(), opts);
     let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
-    simulate(&shape, &scan_dir, &opts, |_| ()).unwrap();
     let o = glasscan(&["decode", scan_dir.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let scan = Scan::open(&scan_dir).unwrap();

@@ -121,6 +121,25 @@ pub fn decoded_scan_with_normals(
     dir.to_path_buf()
 }
 
+/// The glass ellipsoid (30 × 22 × 18 mm semi-axes) captured in `dir/scan` with `capture`'s
+/// settings (views, samples, noise, blur, index) by a 320×240 camera before a 1920×1200 monitor
+/// of 0.2 mm pixels, a camera pixel spanning about 4 monitor pixels as in a rig; returns the
+/// scan folder (not decoded).
+pub fn fine_monitor_ellipsoid(dir: &Path, capture: SimulateOptions) -> PathBuf {
+    let scan = dir.join("scan");
+    let opts = SimulateOptions {
+        width: 320,
+        height: 240,
+        screen_width: 1920,
+        screen_height: 1200,
+        pitch_mm: 0.2,
+        ..capture
+    };
+    let shape = glasscan::mesh::shapes::ellipsoid(nalgebra::Vector3::new(30.0, 22.0, 18.0), 4);
+    simulate(&shape, &scan, &opts, |_| ()).expect("simulate the ellipsoid");
+    scan
+}
+
 /// Every file below `dir` with its bytes, by relative path.
 pub fn snapshot(dir: &Path) -> std::collections::BTreeMap<PathBuf, Vec<u8>> {
     let mut out = std::collections::BTreeMap::new();

@@ -1,6 +1,6 @@
 //! The Gray-code decoder against OpenCV's `getProjPixel` and against simulated ground truth.
 
-use crate::common::glasscan;
+use crate::common::{fine_monitor_ellipsoid, glasscan};
 use glasscan::decode::graycode::{decode_view, BitTest};
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::patterns::GrayCode;
@@ -459,21 +459,14 @@ fn the_monitor_seen_directly_decodes_where_the_camera_looks() {
     // A camera pixel spans about 4 monitor pixels, as in a rig (finer than that, the decoded
     // cell's quantisation, a sawtooth in the pixel's phase, does not average out over one view).
     let dir = tempfile::tempdir().unwrap();
-    let scan = dir.path().join("scan");
     let opts = SimulateOptions {
         views: 1,
-        width: 320,
-        height: 240,
-        screen_width: 1920,
-        screen_height: 1200,
-        pitch_mm: 0.2,
         spp: 4,
         noise: 2.0,
         blur_px: 0.7,
         ..Default::default()
     };
-    let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
-    simulate(&shape, &scan, &opts, |_| ()).unwrap();
+    let scan = fine_monitor_ellipsoid(dir.path(), opts);
     let o = glasscan(&["decode", scan.to_str().unwrap(), "--compare-ground-truth"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = String::from_utf8_lossy(&o.stdout);
