@@ -50,7 +50,8 @@ pub struct ScanConfig {
     pub ior: Ior,
     /// The camera's blur as the captures show it (focus, optics, the sensor's spread): the σ of
     /// a Gaussian point-spread function, camera pixels; absent or 0: sharp. A reconstruction
-    /// corrects the decoded points for it ([`crate::loss::blur`]).
+    /// with `blur_correction` corrects the decoded points for it (docs/architecture.md §4, a
+    /// blurred camera).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub blur_px: Option<f64>,
     pub calibration: CalibrationFiles,
