@@ -17,7 +17,7 @@ use nalgebra::{Point3, Vector3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::refraction::ViewTargets;
+use super::refraction::{screen_hit, ViewTargets};
 use crate::trace::path::{trace_chunk, PathEnd, PathSettings, Surface, TRACE_CHUNK};
 use crate::trace::{Ray, TraceError};
 use crate::util::interpolated_median;
@@ -177,10 +177,7 @@ fn blur_shift(
 /// Where the ray (o, d) meets the monitor plane, in monitor pixels along its `axes` from
 /// `view.monitor_point`; `None` when it runs parallel to the plane or away from it.
 fn monitor_uv(view: &ViewTargets, axes: [V3; 2], o: &Point3<f64>, d: &V3) -> Option<(f64, f64)> {
-    let s = (view.monitor_point - o).dot(&view.monitor_normal) / d.dot(&view.monitor_normal);
-    if !(s > 0.0 && s.is_finite()) {
-        return None;
-    }
+    let (s, _) = screen_hit(view, o, d)?;
     let x = o + d * s - view.monitor_point;
     let [au, av] = axes;
     Some((

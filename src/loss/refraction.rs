@@ -398,7 +398,7 @@ fn bit_term(
 
 /// Where the ray (o, d) meets the monitor plane: the distance along it (mm) and d·ν; `None` when
 /// it runs parallel to the plane or away from it.
-fn screen_hit(view: &ViewTargets, o: &Point3<f64>, d: &V3) -> Option<(f64, f64)> {
+pub(super) fn screen_hit(view: &ViewTargets, o: &Point3<f64>, d: &V3) -> Option<(f64, f64)> {
     let dn = d.dot(&view.monitor_normal);
     let sdist = (view.monitor_point - o).dot(&view.monitor_normal) / dn;
     (sdist > 0.0 && sdist.is_finite()).then_some((sdist, dn))
