@@ -24,7 +24,7 @@ use opencv::core::{Mat, MatTraitConst, Point2d, Point3d, Vector};
 use rayon::prelude::*;
 
 use super::{camera_mats, pose_from_vectors};
-use crate::decode::{decode_captures, DecodeOptions, DecodedCapture};
+use crate::decode::{decode_captures, DecodeOptions, DecodedCapture, Keep};
 use crate::patterns::GrayCode;
 use crate::rig::{Camera, Screen};
 use crate::scan::{background_dir, ScanConfig};
@@ -105,7 +105,7 @@ pub fn from_background(
         config.patterns.phase_shift.as_ref(),
         (camera.width, camera.height),
         &DecodeOptions::default(),
-        false,
+        Keep::default(),
     )?;
     calibrate_screen(&cap, &code, camera, pitch_mm)
 }

@@ -11,6 +11,7 @@ use super::common::{
 use glasscan::decode::compare::{compare_view, Comparison};
 use glasscan::decode::mask::MaskOptions;
 use glasscan::decode::{decode_scan, DecodeOptions};
+use glasscan::scan::decoded::MeasuredBlur;
 
 #[derive(Args, Debug)]
 pub struct DecodeArgs {
@@ -76,13 +77,14 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
     };
     let bar = bar("decode", views.len());
     let t0 = std::time::Instant::now();
-    let summaries = decode_scan(&scan, &views, &o, |s| {
+    let outcome = decode_scan(&scan, &views, &o, |s| {
         if let Some(w) = &s.warning {
             bar.suspend(|| eprintln!("warning: view {}: {w}", s.view));
         }
         bar.inc(1);
     })?;
     bar.finish_and_clear();
+    let summaries = outcome.views;
     let object: usize = summaries.iter().map(|s| s.object_pixels).sum();
     let decoded: f64 = summaries
         .iter()
@@ -96,6 +98,7 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         100.0 * decoded / object.max(1) as f64,
         summaries.iter().filter(|s| s.warning.is_some()).count()
     );
+    print_blur(&scan, outcome.blur)?;
     if a.compare {
         let fixed = glasscan::util::fixed::FixedPoint::for_screen(
             scan.screen.width_px,
@@ -154,6 +157,28 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
             100.0 * w(|c| c.within_uncertainty_footprint),
             glasscan::util::median(rows.iter().map(|c| c.median_error_footprint_px).collect())
         );
+    }
+    Ok(())
+}
+
+/// What decode measured of the camera's blur, beside scan.toml's.
+fn print_blur(scan: &glasscan::scan::Scan, blur: Option<MeasuredBlur>) -> Result<()> {
+    let given = scan.config.blur_px;
+    match (blur, given) {
+        (Some(m), Some(g)) => outln!(
+            "camera blur on the background captures: σ {:.2} px ({} stripe edges); scan.toml gives blur_px = {g}, which runs use",
+            m.sigma_px,
+            m.edges
+        ),
+        (Some(m), None) => outln!(
+            "camera blur on the background captures: σ {:.2} px ({} stripe edges); a run with blur_correction uses it (blur_px in scan.toml overrides it)",
+            m.sigma_px,
+            m.edges
+        ),
+        (None, _) if scan.background_dir().is_dir() => outln!(
+            "camera blur: not measured, too few clean stripe edges in the background captures"
+        ),
+        (None, _) => {}
     }
     Ok(())
 }

@@ -23,7 +23,7 @@ pub fn carry_over(
         return Ok(Vec::new());
     }
     let kept = match read_summary(old) {
-        Ok((f, views)) if f.scale == fixed.scale => views,
+        Ok(s) if s.fixed.scale == fixed.scale => s.views,
         _ => Vec::new(),
     };
     let stale = |name: &str| {

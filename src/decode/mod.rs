@@ -2,6 +2,7 @@
 //! it sees, with the uncertainty its reliable bits leave. The decoded form is documented in the
 //! README (`decoded/` of the scan folder).
 
+pub mod blur;
 mod carry;
 pub mod coherence;
 pub mod compare;
@@ -74,6 +75,17 @@ pub struct DecodedCapture {
     pub fine: Option<FineDiffs>,
     /// The contrasts of the bits around each pixel's cell ([`graycode::bit_contrasts`]).
     pub contrasts: Vec<[f32; 4]>,
+    /// The camera's blur measured on the stripes, when asked for and measurable.
+    pub blur: Option<form::MeasuredBlur>,
+}
+
+/// What [`decode_captures`] keeps beyond the decoded pixels.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Keep {
+    /// The fine bits' pattern − inverse differences (the mask's edge rule).
+    pub fine: bool,
+    /// The camera's blur, measured on the stripes ([`blur`]; captures of the monitor alone).
+    pub blur: bool,
 }
 
 /// The bit contrasts of the object pixels with a decoded monitor point, encoded for
@@ -151,14 +163,14 @@ fn to_8bit(m: Mat, bits: u32) -> Result<Mat> {
 }
 
 /// Reads and decodes the captures in `dir` (with the phase-shift images if `phase` is given),
-/// keeping the fine bits' differences if `keep_fine`; names the missing or misfit image.
+/// keeping what `keep` asks for; names the missing or misfit image.
 pub fn decode_captures(
     dir: &Path,
     code: &GrayCode,
     phase: Option<&PhaseShift>,
     size: (u32, u32),
     o: &DecodeOptions,
-    keep_fine: bool,
+    keep: Keep,
 ) -> Result<DecodedCapture> {
     let names = crate::patterns::capture_names(code, phase);
     let n = code.pattern_count();
@@ -189,16 +201,30 @@ pub fn decode_captures(
         min_contrast: o.min_contrast,
     };
     let mut pixels = decode_view(&data[..n], white, black, code, test);
-    let fine = keep_fine.then(|| FineDiffs::new(&data[..n], white, black, &fine_bits(code), test));
+    let fine = keep
+        .fine
+        .then(|| FineDiffs::new(&data[..n], white, black, &fine_bits(code), test));
     if let Some(p) = phase {
         phase::refine(&mut pixels, &data[n + 2..], p, o.min_modulation);
     }
     let contrasts = bit_contrasts(&data[..n], white, black, code, &pixels);
-    let lit = white
+    let lit: Vec<bool> = white
         .iter()
         .zip(black)
         .map(|(&w, &b)| w as i32 - b as i32 > o.black_threshold as i32)
         .collect();
+    let blur = keep.blur.then(|| {
+        let view = blur::DirectView {
+            images: &data[..n],
+            white,
+            black,
+            pixels: &pixels,
+            lit: &lit,
+            width: size.0 as usize,
+            height: size.1 as usize,
+        };
+        blur::estimate(&view, code)
+    });
     Ok(DecodedCapture {
         width: size.0 as usize,
         height: size.1 as usize,
@@ -207,18 +233,20 @@ pub fn decode_captures(
         white: white.to_vec(),
         fine,
         contrasts,
+        blur: blur.flatten(),
     })
 }
 
 /// Decodes views `views` of `scan` into `scan/decoded/` (replaced whole once the decode is
 /// complete; a failure leaves the previous decode as it was). The other views' decoded files and
-/// any file the user put there are kept ([`carry::carry_over`]).
+/// any file the user put there are kept ([`carry::carry_over`]). The background captures, where
+/// taken, also give the camera's blur ([`blur`]).
 pub fn decode_scan(
     scan: &Scan,
     views: &[usize],
     o: &DecodeOptions,
     mut progress: impl FnMut(&ViewSummary),
-) -> Result<Vec<ViewSummary>> {
+) -> Result<DecodeOutcome> {
     let code = scan.graycode();
     let phase_shift = scan.config.patterns.phase_shift.filter(|_| o.use_phase);
     let phase = phase_shift.as_ref();
@@ -234,6 +262,7 @@ pub fn decode_scan(
     std::fs::create_dir_all(out.join("preview"))
         .with_context(|| format!("cannot create {}", out.display()))?;
     let (background, background_capture) = background_reference(scan, &code, phase, size, o)?;
+    let blur = background_capture.as_ref().and_then(|c| c.blur);
     let writer = ViewWriter {
         out: &out,
         background: &background,
@@ -245,8 +274,11 @@ pub fn decode_scan(
     };
     let mut summaries = Vec::new();
     for &k in views {
-        let keep_fine = background_capture.is_some();
-        let cap = decode_captures(&scan.view_dir(k), &code, phase, size, o, keep_fine)?;
+        let keep = Keep {
+            fine: background_capture.is_some(),
+            blur: false,
+        };
+        let cap = decode_captures(&scan.view_dir(k), &code, phase, size, o, keep)?;
         let summary = match view_problem(&cap) {
             Some(why) => ViewSummary {
                 view: k,
@@ -264,9 +296,21 @@ pub fn decode_scan(
     }
     let mut all: Vec<ViewSummary> = kept.into_iter().chain(summaries.iter().cloned()).collect();
     all.sort_by_key(|s| s.view);
-    form::write_summary(&out, &fixed, &all)?;
+    form::write_summary(&out, &fixed, &all, blur.as_ref())?;
     staged.commit()?;
-    Ok(summaries)
+    Ok(DecodeOutcome {
+        views: summaries,
+        blur,
+    })
+}
+
+/// What [`decode_scan`] found.
+pub struct DecodeOutcome {
+    /// The views decoded, in the order asked for.
+    pub views: Vec<ViewSummary>,
+    /// The camera's blur measured on the background captures; `None` without them (or with
+    /// too few stripe edges in them).
+    pub blur: Option<form::MeasuredBlur>,
 }
 
 /// Refuses a decode whose images would not fit the memory budget: per camera pixel it holds the
@@ -329,7 +373,11 @@ fn background_reference(
 ) -> Result<(Vec<BackgroundPixel>, Option<DecodedCapture>)> {
     let dir = scan.background_dir();
     if dir.is_dir() {
-        let cap = decode_captures(&dir, code, phase, size, o, true)?;
+        let keep = Keep {
+            fine: true,
+            blur: true,
+        };
+        let cap = decode_captures(&dir, code, phase, size, o, keep)?;
         let pixels = cap
             .pixels
             .iter()

@@ -254,6 +254,7 @@ fn import_into(
         &decoded,
         &FixedPoint::for_screen(screen.width_px, screen.height_px),
         &summaries,
+        None,
     )?;
     Ok(ImportReport {
         camera: kind,

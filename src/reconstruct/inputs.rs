@@ -10,6 +10,7 @@ use std::sync::Arc;
 use super::config::Settings;
 use crate::loss::blur::{correct_targets, BlurKernel, CorrectionSummary};
 use crate::loss::refraction::ViewTargets;
+use crate::scan::decoded::{DecodedScan, MeasuredBlur};
 use crate::scan::silhouette::Silhouette;
 use crate::trace::path::Surface;
 use anyhow::{bail, Result};
@@ -27,9 +28,11 @@ pub struct Inputs {
     pub kept_shares: Vec<f64>,
     /// Shared with the inputs [`Inputs::deblurred`] makes.
     pub silhouettes: Arc<Vec<Silhouette>>,
-    /// The camera's blur (scan.toml's `blur_px`), which a run whose settings have
-    /// `blur_correction` corrects the decoded points for.
+    /// The camera's blur ([`CameraBlur`]), which a run whose settings have `blur_correction`
+    /// corrects the decoded points for.
     pub blur: Option<BlurKernel>,
+    /// Where the blur comes from, with what decode measured.
+    pub blur_source: CameraBlur,
     /// What the inputs were read from ([`fingerprint`]); a run resumes only from the same.
     pub fingerprint: super::fingerprint::Fingerprint,
 }
@@ -57,6 +60,11 @@ pub fn load_inputs(
         }
     };
     let (targets, skipped) = crate::loss::targets::scan_targets_with(scan, views, weights, keep)?;
+    let size = (scan.camera.width, scan.camera.height);
+    let blur_source = CameraBlur {
+        given_px: scan.config.blur_px,
+        measured: DecodedScan::open(&scan.dir, size)?.blur,
+    };
     let (targets, kept_shares): (Vec<ViewTargets>, Vec<f64>) = targets.into_iter().unzip();
     if targets.is_empty() {
         bail!("no decoded view to reconstruct from");
@@ -84,11 +92,44 @@ pub fn load_inputs(
             targets,
             kept_shares,
             silhouettes: Arc::new(silhouettes),
-            blur: scan.config.blur_px.and_then(BlurKernel::gaussian),
+            blur: blur_source.sigma_px().and_then(BlurKernel::gaussian),
+            blur_source,
             fingerprint: super::fingerprint::of_scan(scan, views)?,
         },
         warnings,
     ))
+}
+
+/// The camera's blur a run knows: scan.toml's `blur_px` if given, else what decode measured on
+/// the background captures.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CameraBlur {
+    /// scan.toml's `blur_px`, camera pixels.
+    pub given_px: Option<f64>,
+    pub measured: Option<MeasuredBlur>,
+}
+
+impl CameraBlur {
+    /// σ of the blur, camera pixels: the given one, else the measured one.
+    pub fn sigma_px(&self) -> Option<f64> {
+        self.given_px.or(self.measured.map(|m| m.sigma_px))
+    }
+
+    /// Where σ comes from, for the run's notes.
+    pub fn describe(&self) -> String {
+        match (self.given_px, self.measured) {
+            (Some(g), Some(m)) => format!(
+                "σ {g} px, scan.toml; decode measured {:.2} px on the background captures",
+                m.sigma_px
+            ),
+            (Some(g), None) => format!("σ {g} px, scan.toml"),
+            (None, Some(m)) => format!(
+                "σ {:.2} px, measured by decode on the background captures over {} stripe edges",
+                m.sigma_px, m.edges
+            ),
+            (None, None) => "none known".into(),
+        }
+    }
 }
 
 impl Inputs {
@@ -120,6 +161,7 @@ impl Inputs {
             kept_shares: self.kept_shares.clone(),
             silhouettes: Arc::clone(&self.silhouettes),
             blur: self.blur.clone(),
+            blur_source: self.blur_source,
             fingerprint: self.fingerprint.clone(),
         };
         Ok(Some((inputs, summary)))

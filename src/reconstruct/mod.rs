@@ -296,6 +296,7 @@ mod tests {
             kept_shares: Vec::new(),
             silhouettes: Default::default(),
             blur: None,
+            blur_source: Default::default(),
             fingerprint: Default::default(),
         };
         checkpoint.stages_done = checkpoint.settings.warmup_stages;
@@ -360,6 +361,7 @@ mod tests {
             kept_shares: vec![1.0],
             silhouettes: Default::default(),
             blur: None,
+            blur_source: Default::default(),
             fingerprint: Default::default(),
         };
         let measured = PixelBits {

@@ -91,7 +91,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     for w in &warnings {
         progress.note(&format!("warning: {w}"));
     }
-    note_the_blur(scan, &inputs, &settings, progress);
+    note_the_blur(&inputs, &settings, progress);
     let given = inputs.ior;
     if given.is_auto() {
         let main_committed = matches!(existing, Existing::Run(_));
@@ -195,14 +195,20 @@ fn index_pass(
 }
 
 /// Says when the run corrects the decoded points for the camera's blur.
-fn note_the_blur(scan: &Scan, inputs: &Inputs, settings: &Settings, progress: &dyn Progress) {
-    if let (Some(sigma), Some(_), true) =
-        (scan.config.blur_px, &inputs.blur, settings.blur_correction)
-    {
-        progress.note(&format!(
-            "the camera's blur (σ {sigma} px, scan.toml): each stage after the warm-up corrects the decoded points for it on its start mesh, the held-out fit on the result"
-        ));
+fn note_the_blur(inputs: &Inputs, settings: &Settings, progress: &dyn Progress) {
+    if !settings.blur_correction {
+        return;
     }
+    let source = inputs.blur_source.describe();
+    progress.note(&match inputs.blur {
+        Some(_) => format!(
+            "the camera's blur ({source}): each stage after the warm-up corrects the decoded points for it on its start mesh, the held-out fit on the result"
+        ),
+        None if inputs.blur_source.sigma_px().is_some() => format!(
+            "the camera's blur ({source}) is below what the correction resolves: nothing to correct"
+        ),
+        None => "blur_correction is on, but the scan gives no blur (no blur_px in scan.toml, and decode measured none: no background captures, or too few stripe edges in them): nothing is corrected".into(),
+    });
 }
 
 /// The index the result (`finished`'s stage `result_stage`) was made at: the given one, or its

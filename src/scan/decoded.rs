@@ -25,6 +25,7 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{Point3, Vector3};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec4w};
 
+use super::MAX_BLUR_PX;
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::image::write_pixels;
 use serde::{Deserialize, Serialize};
@@ -224,38 +225,74 @@ pub fn write_view(
 }
 
 /// Writes `summary.json`.
-pub fn write_summary(dir: &Path, fixed: &FixedPoint, views: &[ViewSummary]) -> Result<()> {
+pub fn write_summary(
+    dir: &Path,
+    fixed: &FixedPoint,
+    views: &[ViewSummary],
+    blur: Option<&MeasuredBlur>,
+) -> Result<()> {
     crate::util::atomic::write_atomic(&dir.join("summary.json"), |w| {
         serde_json::to_writer_pretty(
             &mut *w,
-            &serde_json::json!({ "fixed_point_scale": fixed.scale, "views": views }),
+            &serde_json::json!({ "fixed_point_scale": fixed.scale, "views": views, "blur": blur }),
         )?;
         Ok(())
     })
     .with_context(|| format!("cannot write {}", dir.join("summary.json").display()))
 }
 
-/// Reads `dir/summary.json`: the fixed-point scale and the per-view figures.
-pub fn read_summary(dir: &Path) -> Result<(FixedPoint, Vec<ViewSummary>)> {
+/// The camera's blur as decode measured it on the background captures.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MeasuredBlur {
+    /// σ of the camera's Gaussian blur beyond the pixel's own area, camera pixels.
+    pub sigma_px: f64,
+    /// Stripe edges measured.
+    pub edges: usize,
+}
+
+/// What `summary.json` holds.
+#[derive(Clone, Debug)]
+pub struct Summary {
+    pub fixed: FixedPoint,
+    pub views: Vec<ViewSummary>,
+    /// Absent without background captures (or too few stripe edges in them).
+    pub blur: Option<MeasuredBlur>,
+}
+
+/// Reads `dir/summary.json`.
+pub fn read_summary(dir: &Path) -> Result<Summary> {
     let path = dir.join("summary.json");
     let text = std::fs::read_to_string(&path)
         .with_context(|| format!("cannot read {}", path.display()))?;
     #[derive(serde::Deserialize)]
-    struct Summary {
+    struct Stored {
         fixed_point_scale: f64,
         views: Vec<ViewSummary>,
+        #[serde(default)]
+        blur: Option<MeasuredBlur>,
     }
-    let s: Summary = serde_json::from_str(&text)
+    let s: Stored = serde_json::from_str(&text)
         .with_context(|| format!("{}: not a decode summary", path.display()))?;
     if s.fixed_point_scale.is_nan() || s.fixed_point_scale <= 0.0 {
         bail!("{}: fixed_point_scale must be positive", path.display());
     }
-    Ok((
-        FixedPoint {
+    if let Some(b) = s
+        .blur
+        .filter(|b| !(0.0..=MAX_BLUR_PX).contains(&b.sigma_px))
+    {
+        bail!(
+            "{}: blur.sigma_px = {}: a Gaussian's σ in camera pixels, 0 to {MAX_BLUR_PX}; decode the scan again",
+            path.display(),
+            b.sigma_px
+        );
+    }
+    Ok(Summary {
+        fixed: FixedPoint {
             scale: s.fixed_point_scale,
         },
-        s.views,
-    ))
+        views: s.views,
+        blur: s.blur,
+    })
 }
 
 /// True when `name` is a file of view `k` in the decoded folder or its previews
@@ -273,6 +310,8 @@ pub struct DecodedScan {
     /// Image size every view must have (the camera's), pixels.
     pub size: (u32, u32),
     summaries: Vec<ViewSummary>,
+    /// The camera's blur measured on the background captures, where decode could.
+    pub blur: Option<MeasuredBlur>,
 }
 
 impl DecodedScan {
@@ -287,12 +326,13 @@ impl DecodedScan {
                 scan_dir.display()
             );
         }
-        let (fixed, summaries) = read_summary(&dir)?;
+        let summary = read_summary(&dir)?;
         Ok(Self {
             dir,
-            fixed,
+            fixed: summary.fixed,
             size,
-            summaries,
+            summaries: summary.views,
+            blur: summary.blur,
         })
     }
 

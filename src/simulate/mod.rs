@@ -306,7 +306,7 @@ fn render_views(
         progress(k);
     }
     if o.decoded_only {
-        crate::scan::decoded::write_summary(&decoded_dir, &fixed, &decoded)?;
+        crate::scan::decoded::write_summary(&decoded_dir, &fixed, &decoded, None)?;
     }
     let mut report = tally.report(o.views);
     report.direct_footprint_px = direct_footprint_px;

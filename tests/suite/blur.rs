@@ -7,6 +7,7 @@ use glasscan::loss::refraction::ViewTargets;
 use glasscan::loss::targets::scan_targets;
 use glasscan::mesh::shapes::ellipsoid;
 use glasscan::mesh::TriMesh;
+use glasscan::scan::decoded::DecodedScan;
 use glasscan::scan::Scan;
 use glasscan::simulate::SimulateOptions;
 use glasscan::trace::path::{trace_paths, MeshSurface, NormalModel, PathEnd, PathSettings};
@@ -60,8 +61,14 @@ fn a_blurred_cameras_decoded_points_corrected_for_the_blur_meet_the_centre_rays(
     let o = glasscan(&["decode", scan_dir.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let scan = Scan::open(&scan_dir).unwrap();
-    // simulate records the captures' blur in scan.toml.
+    // simulate records the captures' blur in scan.toml, and decode measures it on the
+    // background captures (low by the simulator's 4 area samples, narrower than a pixel's
+    // square: docs/architecture.md §4).
     assert_eq!(scan.config.blur_px, Some(1.0));
+    let size = (scan.camera.width, scan.camera.height);
+    let measured = DecodedScan::open(&scan_dir, size).unwrap().blur.unwrap();
+    eprintln!("blur 1 px, measured {measured:?}");
+    assert!((measured.sigma_px - 1.0).abs() < 0.2, "{measured:?}");
     let views: Vec<usize> = (0..3).collect();
     let (targets, _) = scan_targets(&scan, &views, Default::default()).unwrap();
 

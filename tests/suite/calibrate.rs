@@ -10,7 +10,7 @@ use glasscan::calibrate::board::{read_images, Board};
 use glasscan::calibrate::camera::{calibrate_camera, CameraOptions};
 use glasscan::calibrate::screen::calibrate_screen;
 use glasscan::calibrate::turntable::calibrate_turntable;
-use glasscan::decode::{decode_captures, DecodeOptions};
+use glasscan::decode::{decode_captures, DecodeOptions, Keep};
 use glasscan::mesh::shapes::icosphere;
 use glasscan::scan::Scan;
 use glasscan::simulate::calibration::{CalibrationBoards, TURNTABLE_ANGLES};
@@ -191,7 +191,7 @@ fn simulated_monitor_pose_matches_its_truth() {
         None,
         (truth.camera.width, truth.camera.height),
         &DecodeOptions::default(),
-        false,
+        Keep::default(),
     )
     .unwrap();
     let cal = calibrate_screen(&cap, &code, &truth.camera, truth.screen.pitch_mm).unwrap();
@@ -259,7 +259,7 @@ fn monitor_pose_from_partial_decodes_at_large_footprints() {
         None,
         size,
         &DecodeOptions::default(),
-        false,
+        Keep::default(),
     )
     .unwrap();
     let cal = calibrate_screen(&cap, &code, &truth.camera, truth.screen.pitch_mm).unwrap();

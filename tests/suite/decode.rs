@@ -153,6 +153,18 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
     ] {
         assert!(scan.join(f).is_file(), "{f}");
     }
+    // The background captures show a sharp camera (one sample per pixel, no blur).
+    let blur = |scan: &std::path::Path| {
+        glasscan::scan::decoded::DecodedScan::open(scan, (160, 120))
+            .unwrap()
+            .blur
+    };
+    let sharp = blur(&scan).expect("measured on the background captures");
+    assert!(sharp.sigma_px < 0.15, "{sharp:?}");
+    assert!(
+        out.contains("camera blur on the background captures: σ"),
+        "{out}"
+    );
 
     // Without the background captures, the calibrated screen pose predicts the background.
     std::fs::rename(
@@ -170,6 +182,11 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
         .parse()
         .unwrap();
     assert!(iou >= 0.99, "{overall}");
+    assert_eq!(
+        blur(&scan),
+        None,
+        "no background captures, no blur measured"
+    );
 
     // A saturated view (black as bright as white) is reported by name.
     let view0 = scan.join("captures/view_000");

@@ -1,0 +1,379 @@
+//! The camera's blur, measured on the background captures (the monitor seen directly, without
+//! the object): across a stripe edge of a coarse Gray-code bit, the pattern − inverse difference
+//! rises from one plateau to the other over as many camera pixels as the camera spreads a sharp
+//! edge. For a step spread by a symmetric kernel K (the camera's Gaussian blur of σ and the
+//! pixel's own square), the normalised profile f = 2F − 1 (F: K's distribution) gives
+//! ∫ (1 − |f|) = 2 E|K| across the edge: summed over the camera pixels of a line that crosses
+//! the edge at cos θ to its normal, (1 − |f|) sums to 2 E|K| / cos θ. That sum is linear in the
+//! samples (8-bit noise averages out, unlike a fitted width) and needs no edge position. σ is
+//! the value whose model E|σZ + box projected at θ| matches the edges' mean (docs/architecture.md
+//! §4, a blurred camera).
+//!
+//! The estimate assumes a linear camera response (raw or linear captures): a tone curve bends
+//! the profile and biases it.
+
+use super::graycode::PixelDecode;
+use crate::patterns::GrayCode;
+use crate::scan::decoded::MeasuredBlur;
+
+/// Edges measured along a line are those whose normal is within this cosine of the line.
+const MIN_COS: f64 = 0.7;
+/// Fewest edges an estimate needs.
+const MIN_EDGES: usize = 100;
+/// Half-width of the first window around an edge crossing, camera pixels along the line; it
+/// doubles (to at most [`MAX_REACH`]) while the blur found is too wide for it.
+const FIRST_REACH: usize = 12;
+const MAX_REACH: usize = 48;
+/// Share of the edges left out at either end of the sorted measurements (stray edges).
+const TRIM: f64 = 0.1;
+
+/// A decoded capture of the monitor seen directly: its pattern images (OpenCV's order), white
+/// and black images, decoded pixels and lit flags, row-major, `width` × `height`.
+pub struct DirectView<'a> {
+    pub images: &'a [&'a [u8]],
+    pub white: &'a [u8],
+    pub black: &'a [u8],
+    pub pixels: &'a [PixelDecode],
+    pub lit: &'a [bool],
+    pub width: usize,
+    pub height: usize,
+}
+
+/// The camera's blur measured on `view`; `None` when fewer than [`MIN_EDGES`] stripe edges can
+/// be measured (a monitor too small in the frame, too few lit pixels).
+pub fn estimate(view: &DirectView, code: &GrayCode) -> Option<MeasuredBlur> {
+    let mut reach = FIRST_REACH;
+    loop {
+        let edges = measure_edges(view, code, reach);
+        let est = fit_sigma(&edges)?;
+        // The window must span the edge's spread along the line (±4σ at the widest tilt).
+        let wide_enough = 4.0 * (est.sigma_px + 0.5) / MIN_COS <= reach as f64;
+        if wide_enough || reach >= MAX_REACH {
+            return Some(est);
+        }
+        reach *= 2;
+    }
+}
+
+/// A direction of stripes: the column bits' edges are crossed along rows, the row bits' along
+/// columns.
+#[derive(Clone, Copy)]
+enum Axis {
+    U,
+    V,
+}
+
+/// One measured edge: E|K| in camera pixels along the edge's normal, and the cosine between the
+/// line and that normal.
+type Edge = (f64, f64);
+
+/// Every measurable edge of both axes' coarse bits, windows of ±`reach` pixels.
+fn measure_edges(view: &DirectView, code: &GrayCode, reach: usize) -> Vec<Edge> {
+    let mut edges = Vec::new();
+    for axis in [Axis::U, Axis::V] {
+        if let Some(image) = coarse_bit(view, code, axis, reach) {
+            edges_of_bit(view, axis, image, reach, &mut edges);
+        }
+    }
+    edges
+}
+
+/// (step along the line, step across it, lines, pixels per line) in the row-major image.
+fn line_layout(view: &DirectView, axis: Axis) -> (usize, usize, usize, usize) {
+    match axis {
+        Axis::U => (1, view.width, view.height, view.width),
+        Axis::V => (view.width, 1, view.width, view.height),
+    }
+}
+
+/// The decoded monitor coordinate of `axis` at pixel `p`, where its cell is at most
+/// [`MAX_CELL`] monitor pixels wide.
+fn coord(view: &DirectView, axis: Axis, p: usize) -> Option<f64> {
+    let d = view.pixels.get(p)?;
+    let a = match axis {
+        Axis::U => d.u,
+        Axis::V => d.v,
+    };
+    (view.lit[p] && a.bits > 0 && a.cell <= MAX_CELL).then_some(a.coord as f64)
+}
+
+/// The widest decoded cell [`coord_gradient`] reads, monitor pixels: where a camera pixel spans
+/// several monitor pixels the finest bits blur away, and the cells' centres, 2·`H` camera pixels
+/// apart, still give the slope to a few per cent.
+const MAX_CELL: u32 = 64;
+
+/// How the decoded coordinate of `axis` changes at pixel `p` (line `l`, position `i`), monitor
+/// pixels per camera pixel: (along the line, across it), from the pixels 8 away.
+fn coord_gradient(view: &DirectView, axis: Axis, (l, i): (usize, usize)) -> Option<(f64, f64)> {
+    const H: usize = 8;
+    let (along, across, lines, len) = line_layout(view, axis);
+    if i < H || i + H >= len || l < H || l + H >= lines {
+        return None;
+    }
+    let p = l * across + i * along;
+    let diff = |step: usize| {
+        Some((coord(view, axis, p + H * step)? - coord(view, axis, p - H * step)?) / (2 * H) as f64)
+    };
+    Some((diff(along)?, diff(across)?))
+}
+
+/// The pattern image of the finest bit of `axis` whose stripes are at least 2·`reach` + 6 camera
+/// pixels wide along the lines (the median scale of the decoded coordinate); `None` when no bit
+/// below the most significant is that coarse.
+fn coarse_bit(view: &DirectView, code: &GrayCode, axis: Axis, reach: usize) -> Option<usize> {
+    let (_, _, lines, len) = line_layout(view, axis);
+    let mut scales: Vec<f64> = (0..lines)
+        .step_by(8)
+        .flat_map(|l| (0..len).step_by(8).map(move |i| (l, i)))
+        .filter_map(|li| coord_gradient(view, axis, li).map(|(a, _)| a.abs()))
+        .filter(|a| *a > 0.0)
+        .collect();
+    if scales.is_empty() {
+        return None;
+    }
+    let scale = crate::util::median(std::mem::take(&mut scales));
+    let (bits, first) = match axis {
+        Axis::U => (code.column_bits() as usize, 0),
+        Axis::V => (code.row_bits() as usize, 2 * code.column_bits() as usize),
+    };
+    // Bit k (most significant first) has stripes 2^(bits − k) monitor pixels wide.
+    (1..bits)
+        .rev()
+        .find(|&k| (1u64 << (bits - k)) as f64 / scale >= (2 * reach + 6) as f64)
+        .map(|k| first + 2 * k)
+}
+
+/// Measures the edges of the pattern `image` (its inverse follows it) along every line of
+/// `axis`, each in a window of ±`reach` pixels around its crossing, into `edges`.
+fn edges_of_bit(view: &DirectView, axis: Axis, image: usize, reach: usize, edges: &mut Vec<Edge>) {
+    let (along, across, lines, len) = line_layout(view, axis);
+    let (pattern, inverse) = (view.images[image], view.images[image + 1]);
+    let diff = |p: usize| pattern[p] as f64 - inverse[p] as f64;
+    for l in 0..lines {
+        let at = |i: usize| l * across + i * along;
+        let mut i = reach;
+        while i + reach < len {
+            let (a, b) = (diff(at(i - 1)), diff(at(i)));
+            if (a < 0.0) == (b < 0.0) {
+                i += 1;
+                continue;
+            }
+            // The crossing lies between i − 1 and i: a window of 2·reach samples around it.
+            let window: Vec<usize> = (i - reach..i + reach).map(at).collect();
+            if let Some(edge) = measure_edge(view, axis, (l, i), &window, &diff) {
+                edges.push(edge);
+            }
+            i += reach;
+        }
+    }
+}
+
+/// The edge whose crossing lies just before pixel `(l, i)`, from the samples of `window`; `None`
+/// when the window is not one clean edge between two plateaus in lit pixels.
+fn measure_edge(
+    view: &DirectView,
+    axis: Axis,
+    (l, i): (usize, usize),
+    window: &[usize],
+    diff: &impl Fn(usize) -> f64,
+) -> Option<Edge> {
+    if !window.iter().all(|&p| view.lit[p]) {
+        return None;
+    }
+    let n = window.len();
+    let values: Vec<f64> = window.iter().map(|&p| diff(p)).collect();
+    let (lo, hi) = (
+        (values[0] + values[1]) / 2.0,
+        (values[n - 2] + values[n - 1]) / 2.0,
+    );
+    let (mid, swing) = ((hi + lo) / 2.0, (hi - lo) / 2.0);
+    let p = window[n / 2];
+    let range = view.white[p] as f64 - view.black[p] as f64;
+    if swing.abs() < 0.25 * range || swing.abs() < 4.0 {
+        return None;
+    }
+    let f: Vec<f64> = values.iter().map(|v| (v - mid) / swing).collect();
+    // Plateaus: the outer quarter of each side stays on its side (no second edge).
+    let quarter = n / 4;
+    let clean = f[..quarter].iter().all(|&x| x < -0.5) && f[n - quarter..].iter().all(|&x| x > 0.5);
+    if !clean {
+        return None;
+    }
+    let (a_along, a_across) = coord_gradient(view, axis, (l, i))?;
+    let cos = a_along.abs() / a_along.hypot(a_across);
+    if cos.is_nan() || cos < MIN_COS {
+        return None;
+    }
+    let sum: f64 = f.iter().map(|x| 1.0 - x.abs()).sum();
+    Some((cos * sum / 2.0, cos))
+}
+
+/// σ whose model matches the edges' trimmed mean E|K|; `None` below [`MIN_EDGES`] edges.
+fn fit_sigma(edges: &[Edge]) -> Option<MeasuredBlur> {
+    if edges.len() < MIN_EDGES {
+        return None;
+    }
+    let mut spreads: Vec<f64> = edges.iter().map(|e| e.0).collect();
+    spreads.sort_by(f64::total_cmp);
+    let cut = (TRIM * spreads.len() as f64) as usize;
+    let kept = &spreads[cut..spreads.len() - cut];
+    let measured = kept.iter().sum::<f64>() / kept.len() as f64;
+    let model = |sigma: f64| {
+        edges
+            .iter()
+            .map(|e| mean_abs_spread(sigma, e.1))
+            .sum::<f64>()
+            / edges.len() as f64
+    };
+    let (mut lo, mut hi) = (0.0, 2.0 * crate::scan::MAX_BLUR_PX);
+    if model(lo) >= measured {
+        hi = 0.0;
+    }
+    for _ in 0..40 {
+        let m = 0.5 * (lo + hi);
+        if model(m) < measured {
+            lo = m;
+        } else {
+            hi = m;
+        }
+    }
+    Some(MeasuredBlur {
+        sigma_px: 0.5 * (lo + hi),
+        edges: edges.len(),
+    })
+}
+
+/// E|K| for K = σZ + the unit square pixel projected on a direction at cos θ = `cos` to a side
+/// (Z standard normal), camera pixels: by quadrature (8 × 8 points over the pixel, 121 over Z).
+pub(crate) fn mean_abs_spread(sigma: f64, cos: f64) -> f64 {
+    const BOX: usize = 8;
+    const Z: usize = 121;
+    let sin = (1.0 - cos * cos).max(0.0).sqrt();
+    let (mut sum, mut weight) = (0.0, 0.0);
+    for k in 0..Z {
+        let z = -6.0 + 12.0 * k as f64 / (Z - 1) as f64;
+        let w = (-0.5 * z * z).exp();
+        for i in 0..BOX {
+            for j in 0..BOX {
+                let b = cos * ((i as f64 + 0.5) / BOX as f64 - 0.5)
+                    + sin * ((j as f64 + 0.5) / BOX as f64 - 0.5);
+                sum += w * (b + sigma * z).abs();
+            }
+        }
+        weight += w * (BOX * BOX) as f64;
+    }
+    sum / weight
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decode::graycode::AxisDecode;
+    use rayon::prelude::*;
+
+    #[test]
+    fn the_spread_of_a_pixel_alone_and_of_a_wide_gaussian() {
+        // A unit square seen along a side: E|U| = 1/4; a wide Gaussian: σ·√(2/π).
+        assert!((mean_abs_spread(0.0, 1.0) - 0.25).abs() < 1e-3);
+        let wide = mean_abs_spread(4.0, 1.0);
+        let gauss = 4.0 * (2.0 / std::f64::consts::PI).sqrt();
+        assert!(
+            (wide - gauss).abs() < 0.01 * gauss,
+            "{wide} against {gauss}"
+        );
+        assert!(mean_abs_spread(0.5, 0.8) > mean_abs_spread(0.4, 0.8));
+    }
+
+    /// Stripes of `code`'s bits over a camera that sees monitor column u = 1.3 x + 0.4 y + 20
+    /// and row v = −0.3 x + 1.2 y + 120 (monitor pixels), area-sampled and blurred by `sigma`,
+    /// rounded to 8 bits: the blur found.
+    fn measured(sigma: f64) -> MeasuredBlur {
+        use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size, BORDER_REPLICATE};
+        let (w, h) = (320usize, 240usize);
+        let code = GrayCode {
+            width: 640,
+            height: 512,
+        };
+        let uv = |x: f64, y: f64| (1.3 * x + 0.4 * y + 20.0, -0.3 * x + 1.2 * y + 120.0);
+        let render = |i: usize| -> Vec<u8> {
+            let mut img = vec![0f32; w * h];
+            for (p, v) in img.iter_mut().enumerate() {
+                let (x, y) = ((p % w) as f64, (p / w) as f64);
+                let mut lit = 0;
+                for s in 0..36 {
+                    let (dx, dy) = (
+                        (s % 6) as f64 / 6.0 + 1.0 / 12.0,
+                        (s / 6) as f64 / 6.0 + 1.0 / 12.0,
+                    );
+                    let (u, v) = uv(x + dx - 0.5, y + dy - 0.5);
+                    let (u, v) = (u.floor() as u32, v.floor() as u32);
+                    lit += (i == usize::MAX || code.is_white(i, u, v)) as u32;
+                }
+                *v = 20.0 + 200.0 * lit as f32 / 36.0;
+            }
+            let bytes: Vec<u8> = img.iter().map(|v| v.round() as u8).collect();
+            let mat = Mat::new_rows_cols_with_data(h as i32, w as i32, &bytes).unwrap();
+            let mut out = mat.try_clone().unwrap();
+            if sigma > 0.0 {
+                opencv::imgproc::gaussian_blur(
+                    &mat,
+                    &mut out,
+                    Size::new(0, 0),
+                    sigma,
+                    sigma,
+                    BORDER_REPLICATE,
+                )
+                .unwrap();
+            }
+            out.data_typed::<u8>().unwrap().to_vec()
+        };
+        let images: Vec<Vec<u8>> = (0..code.pattern_count())
+            .into_par_iter()
+            .map(render)
+            .collect();
+        let white = render(usize::MAX);
+        let black = vec![20u8; w * h];
+        let pixels: Vec<PixelDecode> = (0..w * h)
+            .map(|p| {
+                let (u, v) = uv((p % w) as f64, (p / w) as f64);
+                let axis = |c: f64| AxisDecode {
+                    coord: c.floor() as f32,
+                    cell: 1,
+                    bits: 10,
+                };
+                PixelDecode {
+                    u: axis(u),
+                    v: axis(v),
+                }
+            })
+            .collect();
+        let lit = vec![true; w * h];
+        let refs: Vec<&[u8]> = images.iter().map(|i| i.as_slice()).collect();
+        let view = DirectView {
+            images: &refs,
+            white: &white,
+            black: &black,
+            pixels: &pixels,
+            lit: &lit,
+            width: w,
+            height: h,
+        };
+        estimate(&view, &code).expect("enough edges")
+    }
+
+    #[test]
+    fn a_known_blur_is_found_on_tilted_stripes() {
+        for sigma in [0.0, 0.7, 1.5, 3.0] {
+            let e = measured(sigma);
+            eprintln!(
+                "blur {sigma} px: found {:.3} px over {} edges",
+                e.sigma_px, e.edges
+            );
+            assert!(e.edges >= MIN_EDGES);
+            assert!(
+                (e.sigma_px - sigma).abs() <= 0.1 + 0.05 * sigma,
+                "{sigma}: {e:?}"
+            );
+        }
+    }
+}
