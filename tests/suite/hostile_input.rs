@@ -231,6 +231,24 @@ fn an_implausible_rig_is_refused() {
     refused_with(&o, 1, "the monitor lies behind the camera");
 }
 
+/// A decode summary whose measured blur is out of range is refused when the scan is read, naming
+/// the file and what to do.
+#[test]
+fn a_measured_blur_out_of_range_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = small_scan(dir.path());
+    let path = scan.join("decoded/summary.json");
+    let mut summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    for sigma in [-1.0, 80.0] {
+        summary["blur"] = serde_json::json!({ "sigma_px": sigma, "edges": 500 });
+        std::fs::write(&path, serde_json::to_vec(&summary).unwrap()).unwrap();
+        let o = glasscan(&["hull", s(&scan), "-o", s(&dir.path().join("h.ply"))]);
+        refused_with(&o, 1, "blur.sigma_px");
+        refused_with(&o, 1, "decode the scan again");
+    }
+}
+
 /// Decoder thresholds out of range are rejected when parsed; `auto` is accepted in any case.
 #[test]
 fn decoder_options_are_range_checked() {
