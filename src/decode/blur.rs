@@ -245,7 +245,7 @@ fn fit_sigma(edges: &[Edge]) -> Option<MeasuredBlur> {
 
 /// E|K| for K = σZ + the unit square pixel projected on a direction at cos θ = `cos` to a side
 /// (Z standard normal), camera pixels: by quadrature (8 × 8 points over the pixel, 121 over Z).
-pub(crate) fn mean_abs_spread(sigma: f64, cos: f64) -> f64 {
+fn mean_abs_spread(sigma: f64, cos: f64) -> f64 {
     const BOX: usize = 8;
     const Z: usize = 121;
     let sin = (1.0 - cos * cos).max(0.0).sqrt();
