@@ -8,6 +8,7 @@ use clap::Args;
 use super::common::{
     auto_or_open_share, bar, parse_views, positive_f32, share, share_f32, AutoShare,
 };
+use glasscan::decode::blur::Unmeasured;
 use glasscan::decode::compare::{compare_view, Comparison};
 use glasscan::decode::mask::MaskOptions;
 use glasscan::decode::{decode_scan, DecodeOptions};
@@ -162,22 +163,23 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
 }
 
 /// What decode measured of the camera's blur, beside scan.toml's.
-fn print_blur(scan: &glasscan::scan::Scan, blur: Option<MeasuredBlur>) -> Result<()> {
+fn print_blur(
+    scan: &glasscan::scan::Scan,
+    blur: Option<Result<MeasuredBlur, Unmeasured>>,
+) -> Result<()> {
     let given = scan.config.blur_px;
     match (blur, given) {
-        (Some(m), Some(g)) => outln!(
+        (Some(Ok(m)), Some(g)) => outln!(
             "camera blur on the background captures: σ {:.2} px ({} stripe edges); scan.toml gives blur_px = {g}, which runs use",
             m.sigma_px,
             m.edges
         ),
-        (Some(m), None) => outln!(
+        (Some(Ok(m)), None) => outln!(
             "camera blur on the background captures: σ {:.2} px ({} stripe edges); a run with blur_correction uses it (blur_px in scan.toml overrides it)",
             m.sigma_px,
             m.edges
         ),
-        (None, _) if scan.background_dir().is_dir() => outln!(
-            "camera blur: not measured, too few clean stripe edges in the background captures"
-        ),
+        (Some(Err(why)), _) => outln!("camera blur: not measured, {why}"),
         (None, _) => {}
     }
     Ok(())

@@ -39,20 +39,66 @@ pub struct DirectView<'a> {
     pub height: usize,
 }
 
-/// The camera's blur measured on `view`; `None` when fewer than [`MIN_EDGES`] stripe edges can
-/// be measured (a monitor too small in the frame, too few lit pixels).
-pub fn estimate(view: &DirectView, code: &GrayCode) -> Option<MeasuredBlur> {
+/// Why the blur was not measured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Unmeasured {
+    /// Fewer clean stripe edges than [`MIN_EDGES`] (a monitor small in the frame, few lit
+    /// pixels); how many there were.
+    TooFewEdges(usize),
+    /// Across the edges pattern + inverse exceed white + black by this share of white − black
+    /// on average (more than [`MAX_EXCESS`]): the captures went through a tone curve, which
+    /// bends the profile.
+    Nonlinear(f64),
+}
+
+impl std::fmt::Display for Unmeasured {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Unmeasured::TooFewEdges(n) => write!(
+                f,
+                "{n} clean stripe edges in the background captures, {MIN_EDGES} needed"
+            ),
+            Unmeasured::Nonlinear(x) => write!(
+                f,
+                "the captures' response is not linear (between the stripes pattern + inverse exceed white + black by {:.0} % of white − black: a tone curve); capture linear or raw images, or set blur_px in scan.toml",
+                100.0 * x
+            ),
+        }
+    }
+}
+
+/// The largest mean excess of pattern + inverse over white + black between the stripes (a
+/// share of white − black) of a linear camera: complementary patterns add up to white, but a
+/// gamma of 1/2.2 makes the middle of an edge 46 % too bright.
+const MAX_EXCESS: f64 = 0.15;
+
+/// The camera's blur measured on `view`, or why it cannot be.
+pub fn estimate(view: &DirectView, code: &GrayCode) -> Result<MeasuredBlur, Unmeasured> {
     let mut reach = FIRST_REACH;
     loop {
         let edges = measure_edges(view, code, reach);
-        let est = fit_sigma(&edges)?;
+        check_edges(&edges)?;
+        let est = fit_sigma(&edges);
         // The window must span the edge's spread along the line (±4σ at the widest tilt).
         let wide_enough = 4.0 * (est.sigma_px + 0.5) / MIN_COS <= reach as f64;
         if wide_enough || reach >= MAX_REACH {
-            return Some(est);
+            return Ok(est);
         }
         reach *= 2;
     }
+}
+
+/// Enough edges, from a camera whose response is linear.
+fn check_edges(edges: &[Edge]) -> Result<(), Unmeasured> {
+    if edges.len() < MIN_EDGES {
+        return Err(Unmeasured::TooFewEdges(edges.len()));
+    }
+    let excesses: Vec<f64> = edges.iter().filter_map(|e| e.excess).collect();
+    let excess = excesses.iter().sum::<f64>() / excesses.len().max(1) as f64;
+    if excess > MAX_EXCESS {
+        return Err(Unmeasured::Nonlinear(excess));
+    }
+    Ok(())
 }
 
 /// A direction of stripes: the column bits' edges are crossed along rows, the row bits' along
@@ -63,9 +109,16 @@ enum Axis {
     V,
 }
 
-/// One measured edge: E|K| in camera pixels along the edge's normal, and the cosine between the
-/// line and that normal.
-type Edge = (f64, f64);
+/// One measured edge.
+struct Edge {
+    /// E|K|, camera pixels along the edge's normal.
+    spread: f64,
+    /// The cosine between the line and that normal.
+    cos: f64,
+    /// The mean of (pattern + inverse − white − black) / (white − black) over the window's
+    /// pixels between the plateaus (|f| < ½); `None` for an edge with none.
+    excess: Option<f64>,
+}
 
 /// Every measurable edge of both axes' coarse bits, windows of ±`reach` pixels.
 fn measure_edges(view: &DirectView, code: &GrayCode, reach: usize) -> Vec<Edge> {
@@ -147,8 +200,8 @@ fn coarse_bit(view: &DirectView, code: &GrayCode, axis: Axis, reach: usize) -> O
 /// `axis`, each in a window of ±`reach` pixels around its crossing, into `edges`.
 fn edges_of_bit(view: &DirectView, axis: Axis, image: usize, reach: usize, edges: &mut Vec<Edge>) {
     let (along, across, lines, len) = line_layout(view, axis);
-    let (pattern, inverse) = (view.images[image], view.images[image + 1]);
-    let diff = |p: usize| pattern[p] as f64 - inverse[p] as f64;
+    let pair = (view.images[image], view.images[image + 1]);
+    let diff = |p: usize| pair.0[p] as f64 - pair.1[p] as f64;
     for l in 0..lines {
         let at = |i: usize| l * across + i * along;
         let mut i = reach;
@@ -160,7 +213,7 @@ fn edges_of_bit(view: &DirectView, axis: Axis, image: usize, reach: usize, edges
             }
             // The crossing lies between i − 1 and i: a window of 2·reach samples around it.
             let window: Vec<usize> = (i - reach..i + reach).map(at).collect();
-            if let Some(edge) = measure_edge(view, axis, (l, i), &window, &diff) {
+            if let Some(edge) = measure_edge(view, axis, (l, i), &window, pair) {
                 edges.push(edge);
             }
             i += reach;
@@ -175,13 +228,16 @@ fn measure_edge(
     axis: Axis,
     (l, i): (usize, usize),
     window: &[usize],
-    diff: &impl Fn(usize) -> f64,
+    (pattern, inverse): (&[u8], &[u8]),
 ) -> Option<Edge> {
     if !window.iter().all(|&p| view.lit[p]) {
         return None;
     }
     let n = window.len();
-    let values: Vec<f64> = window.iter().map(|&p| diff(p)).collect();
+    let values: Vec<f64> = window
+        .iter()
+        .map(|&p| pattern[p] as f64 - inverse[p] as f64)
+        .collect();
     let (lo, hi) = (
         (values[0] + values[1]) / 2.0,
         (values[n - 2] + values[n - 1]) / 2.0,
@@ -205,15 +261,24 @@ fn measure_edge(
         return None;
     }
     let sum: f64 = f.iter().map(|x| 1.0 - x.abs()).sum();
-    Some((cos * sum / 2.0, cos))
+    let excesses: Vec<f64> = (window.iter().zip(&f))
+        .filter(|(_, x)| x.abs() < 0.5)
+        .map(|(&p, _)| {
+            let (w, b) = (view.white[p] as f64, view.black[p] as f64);
+            (pattern[p] as f64 + inverse[p] as f64 - w - b) / (w - b)
+        })
+        .collect();
+    Some(Edge {
+        spread: cos * sum / 2.0,
+        cos,
+        excess: (!excesses.is_empty())
+            .then(|| excesses.iter().sum::<f64>() / excesses.len() as f64),
+    })
 }
 
-/// σ whose model matches the edges' trimmed mean E|K|; `None` below [`MIN_EDGES`] edges.
-fn fit_sigma(edges: &[Edge]) -> Option<MeasuredBlur> {
-    if edges.len() < MIN_EDGES {
-        return None;
-    }
-    let mut spreads: Vec<f64> = edges.iter().map(|e| e.0).collect();
+/// σ whose model matches the edges' trimmed mean E|K| (edges checked by [`check_edges`]).
+fn fit_sigma(edges: &[Edge]) -> MeasuredBlur {
+    let mut spreads: Vec<f64> = edges.iter().map(|e| e.spread).collect();
     spreads.sort_by(f64::total_cmp);
     let cut = (TRIM * spreads.len() as f64) as usize;
     let kept = &spreads[cut..spreads.len() - cut];
@@ -221,7 +286,7 @@ fn fit_sigma(edges: &[Edge]) -> Option<MeasuredBlur> {
     let model = |sigma: f64| {
         edges
             .iter()
-            .map(|e| mean_abs_spread(sigma, e.1))
+            .map(|e| mean_abs_spread(sigma, e.cos))
             .sum::<f64>()
             / edges.len() as f64
     };
@@ -237,10 +302,10 @@ fn fit_sigma(edges: &[Edge]) -> Option<MeasuredBlur> {
             hi = m;
         }
     }
-    Some(MeasuredBlur {
+    MeasuredBlur {
         sigma_px: 0.5 * (lo + hi),
         edges: edges.len(),
-    })
+    }
 }
 
 /// E|K| for K = σZ + the unit square pixel projected on a direction at cos θ = `cos` to a side
@@ -286,8 +351,9 @@ mod tests {
 
     /// Stripes of `code`'s bits over a camera that sees monitor column u = 1.3 x + 0.4 y + 20
     /// and row v = −0.3 x + 1.2 y + 120 (monitor pixels), area-sampled and blurred by `sigma`,
-    /// rounded to 8 bits: the blur found.
-    fn measured(sigma: f64) -> MeasuredBlur {
+    /// through the response `gamma` (grey = 255·(linear/255)^gamma), rounded to 8 bits: the blur
+    /// found.
+    fn measured(sigma: f64, gamma: f64) -> Result<MeasuredBlur, Unmeasured> {
         use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size, BORDER_REPLICATE};
         let (w, h) = (320usize, 240usize);
         let code = GrayCode {
@@ -325,14 +391,19 @@ mod tests {
                 )
                 .unwrap();
             }
-            out.data_typed::<u8>().unwrap().to_vec()
+            let tone = |v: u8| (255.0 * (v as f64 / 255.0).powf(gamma)).round() as u8;
+            out.data_typed::<u8>()
+                .unwrap()
+                .iter()
+                .map(|&v| tone(v))
+                .collect()
         };
         let images: Vec<Vec<u8>> = (0..code.pattern_count())
             .into_par_iter()
             .map(render)
             .collect();
         let white = render(usize::MAX);
-        let black = vec![20u8; w * h];
+        let black = vec![(255.0 * (20.0f64 / 255.0).powf(gamma)).round() as u8; w * h];
         let pixels: Vec<PixelDecode> = (0..w * h)
             .map(|p| {
                 let (u, v) = uv((p % w) as f64, (p / w) as f64);
@@ -358,13 +429,13 @@ mod tests {
             width: w,
             height: h,
         };
-        estimate(&view, &code).expect("enough edges")
+        estimate(&view, &code)
     }
 
     #[test]
     fn a_known_blur_is_found_on_tilted_stripes() {
         for sigma in [0.0, 0.7, 1.5, 3.0] {
-            let e = measured(sigma);
+            let e = measured(sigma, 1.0).expect("a linear camera's edges measure");
             eprintln!(
                 "blur {sigma} px: found {:.3} px over {} edges",
                 e.sigma_px, e.edges
@@ -374,6 +445,15 @@ mod tests {
                 (e.sigma_px - sigma).abs() <= 0.1 + 0.05 * sigma,
                 "{sigma}: {e:?}"
             );
+        }
+    }
+
+    #[test]
+    fn a_tone_curve_is_named_not_measured() {
+        // sRGB-like captures: between the stripes pattern + inverse exceed white + black.
+        match measured(0.7, 1.0 / 2.2) {
+            Err(Unmeasured::Nonlinear(x)) => assert!(x > MAX_EXCESS, "{x}"),
+            other => panic!("{other:?}"),
         }
     }
 }

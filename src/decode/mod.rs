@@ -75,8 +75,9 @@ pub struct DecodedCapture {
     pub fine: Option<FineDiffs>,
     /// The contrasts of the bits around each pixel's cell ([`graycode::bit_contrasts`]).
     pub contrasts: Vec<[f32; 4]>,
-    /// The camera's blur measured on the stripes, when asked for and measurable.
-    pub blur: Option<form::MeasuredBlur>,
+    /// The camera's blur measured on the stripes, or why it could not be; `None` when not
+    /// asked for.
+    pub blur: Option<Result<form::MeasuredBlur, blur::Unmeasured>>,
 }
 
 /// What [`decode_captures`] keeps beyond the decoded pixels.
@@ -233,7 +234,7 @@ pub fn decode_captures(
         white: white.to_vec(),
         fine,
         contrasts,
-        blur: blur.flatten(),
+        blur,
     })
 }
 
@@ -263,6 +264,7 @@ pub fn decode_scan(
         .with_context(|| format!("cannot create {}", out.display()))?;
     let (background, background_capture) = background_reference(scan, &code, phase, size, o)?;
     let blur = background_capture.as_ref().and_then(|c| c.blur);
+    let measured = blur.and_then(Result::ok);
     let writer = ViewWriter {
         out: &out,
         background: &background,
@@ -296,7 +298,7 @@ pub fn decode_scan(
     }
     let mut all: Vec<ViewSummary> = kept.into_iter().chain(summaries.iter().cloned()).collect();
     all.sort_by_key(|s| s.view);
-    form::write_summary(&out, &fixed, &all, blur.as_ref())?;
+    form::write_summary(&out, &fixed, &all, measured.as_ref())?;
     staged.commit()?;
     Ok(DecodeOutcome {
         views: summaries,
@@ -308,9 +310,9 @@ pub fn decode_scan(
 pub struct DecodeOutcome {
     /// The views decoded, in the order asked for.
     pub views: Vec<ViewSummary>,
-    /// The camera's blur measured on the background captures; `None` without them (or with
-    /// too few stripe edges in them).
-    pub blur: Option<form::MeasuredBlur>,
+    /// The camera's blur measured on the background captures, or why it could not be; `None`
+    /// without them.
+    pub blur: Option<Result<form::MeasuredBlur, blur::Unmeasured>>,
 }
 
 /// Refuses a decode whose images would not fit the memory budget: per camera pixel it holds the
