@@ -7,10 +7,11 @@
 //! the edge at cos θ to its normal, (1 − |f|) sums to 2 E|K| / cos θ. That sum is linear in the
 //! samples (8-bit noise averages out, unlike a fitted width) and needs no edge position. σ is
 //! the value whose model E|σZ + box projected at θ| matches the edges' mean (docs/architecture.md
-//! §4, a blurred camera).
+//! §4, measuring the blur).
 //!
-//! The estimate assumes a linear camera response (raw or linear captures): a tone curve bends
-//! the profile and biases it.
+//! The estimate needs a linear camera response (raw or linear captures), since a tone curve bends
+//! the profile; captures whose pattern and inverse do not add up to white and black between the
+//! stripes are named instead ([`Unmeasured::Nonlinear`]).
 
 use super::graycode::PixelDecode;
 use crate::patterns::GrayCode;
