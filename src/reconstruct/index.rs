@@ -61,6 +61,13 @@ pub const SPREAD_RISE: f64 = 0.01;
 /// off is 0.045 off.
 pub const WARN_OFFSET: f64 = 0.03;
 
+/// How near (index units) the result's estimate may come to its range's bound before the run
+/// warns that the index may lie beyond it: the stepper holds the index inside the range, so an
+/// estimate pinned there says the data pulled further. (The coarse stages may reach a bound on
+/// the way and the finer ones leave it: the test pebble's run touches 1.40 and ends at 1.467
+/// for 1.4723.)
+pub const BOUND_MARGIN: f64 = 0.005;
+
 /// The held-out views' refraction term (weighted mean) and its derivative with respect to the
 /// index, at one index.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -95,14 +102,44 @@ pub struct IndexReport {
 }
 
 impl IndexReport {
-    /// A warning when a given index fits the held-out views clearly worse than a nearby one.
+    /// A warning when a given index fits the held-out views clearly worse than a nearby one, or
+    /// when the result's estimate cannot be trusted: pinned at its range's bound, unconfirmed by
+    /// the held-out views, or far from the index they fit best.
     pub fn warning(&self) -> Option<String> {
-        let (Ior::Known(given), Some(best)) = (self.given, self.held_out_best) else {
-            return None;
-        };
+        match self.given {
+            Ior::Known(given) => self.given_warning(given),
+            Ior::Auto { lo, hi } => self.estimate_warning(lo, hi),
+        }
+    }
+
+    fn given_warning(&self, given: f64) -> Option<String> {
+        let best = self.held_out_best?;
         ((best.ior - given).abs() > WARN_OFFSET).then(|| {
             format!(
                 "the held-out views fit a refractive index of {:.3} better than the given {given:.4}: check the index, or give ior = \"auto\"",
+                best.ior
+            )
+        })
+    }
+
+    fn estimate_warning(&self, lo: f64, hi: f64) -> Option<String> {
+        let used = self.used;
+        if let Some(bound) = [lo, hi]
+            .into_iter()
+            .find(|b| (used - b).abs() <= BOUND_MARGIN)
+        {
+            return Some(format!(
+                "the refractive index estimate {used:.4} lies at the range's bound {bound}: the index may lie outside {lo}–{hi}, or these captures may not settle it; give a wider range (ior = {{ auto = [lo, hi] }}) or the index"
+            ));
+        }
+        let Some(best) = self.held_out_best else {
+            return Some(format!(
+                "the held-out views find no best-fitting index with the result: the estimate {used:.4} is unconfirmed"
+            ));
+        };
+        ((best.ior - used).abs() > WARN_OFFSET).then(|| {
+            format!(
+                "the held-out views fit a refractive index of {:.3} better than the estimate {used:.4}: the estimate is not settled",
                 best.ior
             )
         })
@@ -218,15 +255,46 @@ mod tests {
         let far = report_at(Ior::Known(1.5), 1.535);
         assert!(far.warning().unwrap().contains("1.535"), "{far:?}");
         assert_eq!(report_at(Ior::Known(1.5), 1.525).warning(), None);
-        assert_eq!(
-            report_at(Ior::Auto { lo: 1.4, hi: 1.7 }, 1.6).warning(),
-            None
-        );
         let none = IndexReport {
             held_out_best: None,
             ..far
         };
         assert_eq!(none.warning(), None);
+    }
+
+    #[test]
+    fn an_estimate_pinned_at_its_bound_unconfirmed_or_far_from_the_best_fit_warns() {
+        let auto = Ior::Auto { lo: 1.4, hi: 1.7 };
+        // Settled: estimated 1.55, the held-out views fit 1.56 best.
+        let settled = report_at(auto, 1.56);
+        assert_eq!(settled.warning(), None);
+        let pinned = IndexReport {
+            used: 1.4,
+            ..settled.clone()
+        };
+        let w = pinned.warning().expect("pinned at the floor");
+        assert!(w.contains("bound 1.4") && w.contains("wider range"), "{w}");
+        let near = IndexReport {
+            used: 1.4 + 2.0 * BOUND_MARGIN,
+            held_out_best: Some(BestFit {
+                ior: 1.41,
+                ..settled.held_out_best.unwrap()
+            }),
+            ..settled.clone()
+        };
+        assert_eq!(near.warning(), None);
+        let top = IndexReport {
+            used: 1.698,
+            ..settled.clone()
+        };
+        assert!(top.warning().unwrap().contains("bound 1.7"));
+        let unconfirmed = IndexReport {
+            held_out_best: None,
+            ..settled.clone()
+        };
+        assert!(unconfirmed.warning().unwrap().contains("unconfirmed"));
+        let far = report_at(auto, 1.55 + 1.5 * WARN_OFFSET);
+        assert!(far.warning().unwrap().contains("not settled"));
     }
 
     #[test]

@@ -630,8 +630,9 @@ fn a_checkpoint_of_another_version_is_refused_not_overwritten() {
 /// An unknown refractive index is estimated with the shape: on the pebble's exact scan (index
 /// 1.4723; three stages, the last at 2.2 mm edges), `--ior auto` (1.40–1.70, starting from the
 /// middle, 1.55: 0.078 off) ends within 0.015 of the index (measured: 1.4669), its result about
-/// as accurate as a run given the index (within 25 %; measured 0.052 against 0.045 mm), which
-/// does not warn; a run given an index 3 % off (1.428) warns, naming a better one.
+/// as accurate as a run given the index (within 25 %; measured 0.052 against 0.045 mm); neither
+/// warns. A run given an index 3 % off (1.428) warns, naming a better one; a run told to look in
+/// 1.50–1.60, above the index, warns that its estimate lies at the range's floor.
 #[test]
 fn an_unknown_refractive_index_is_estimated_and_a_wrong_one_warns() {
     let dir = tempfile::tempdir().unwrap();
@@ -676,6 +677,8 @@ fn an_unknown_refractive_index_is_estimated_and_a_wrong_one_warns() {
         !known_warnings.contains("refractive index"),
         "{known_warnings}"
     );
+    let auto_warnings = auto["warnings"].to_string();
+    assert!(!auto_warnings.contains("estimate"), "{auto_warnings}");
     // `eval` reads the result's confidence: its error by quarters, and the map.
     let (map, json) = (dir.path().join("c.png"), dir.path().join("e.json"));
     let o = glasscan(&[
@@ -704,6 +707,10 @@ fn an_unknown_refractive_index_is_estimated_and_a_wrong_one_warns() {
         warnings.contains("better than the given 1.4280"),
         "{warnings}"
     );
+    let (_, above, _, _) = run("above", "auto:1.50:1.60");
+    let warnings = above["warnings"].to_string();
+    eprintln!("auto:1.50:1.60: {}", above["ior"]);
+    assert!(warnings.contains("at the range's bound 1.5"), "{warnings}");
 }
 
 /// The cut prism's exact scan (24 level views, 320×240, face normals; with `dent_mm` > 0, of
