@@ -94,8 +94,17 @@ pub fn check(
     Ok(f)
 }
 
+/// The most faces a remesh tried for [`largest_usable_edge`]'s hint may make: this many per
+/// face of the input, and at least [`HINT_MIN_FACES`]. The hint only names an edge; a search
+/// down to h/256 on a large surface remeshed to tens of millions of faces for it (a hull of
+/// 110 k faces and 45,000 mm² at 1 mm edges ran for over 10 minutes).
+const HINT_FACES_PER_INPUT_FACE: f64 = 4.0;
+/// See [`HINT_FACES_PER_INPUT_FACE`].
+const HINT_MIN_FACES: f64 = 1e6;
+
 /// Remeshes `input` with `opts` and [`check`]s the result. When the result has lost the
-/// shape, the error names the largest edge length (of h/2, h/4, … h/256) whose remesh keeps it.
+/// shape, the error names the largest edge length (of h/2, h/4, … h/256, as far as
+/// [`hint_edges`] reaches) whose remesh keeps it.
 pub fn remesh_checked(
     input: &TriMesh,
     opts: &RemeshOptions,
@@ -105,8 +114,10 @@ pub fn remesh_checked(
     match check(input, &output, opts.edge_mm, seed) {
         Ok(f) => Ok((output, f)),
         Err(FidelityError::Lost(why)) => {
-            let hint = largest_usable_edge(input, opts, seed).map_or_else(
-                || "no edge length down to h/256 keeps it".to_string(),
+            let edges = hint_edges(input, opts.edge_mm);
+            let finest = edges.last().copied().unwrap_or(opts.edge_mm);
+            let hint = largest_usable_edge(input, opts, &edges, seed).map_or_else(
+                || format!("no edge length down to {finest:.4} mm keeps it"),
                 |h| format!("the largest usable edge is about {h:.4} mm"),
             );
             Err(FidelityError::Lost(format!(
@@ -118,19 +129,51 @@ pub fn remesh_checked(
     }
 }
 
-/// The first of h/2, h/4, … h/256 whose remesh passes [`check`].
-fn largest_usable_edge(input: &TriMesh, opts: &RemeshOptions, seed: u64) -> Option<f64> {
+/// h/2, h/4, … h/256, as long as a remesh of `input`'s area at that edge stays within the
+/// hint's face budget ([`HINT_FACES_PER_INPUT_FACE`]; an equilateral triangle of side e has
+/// area √3/4·e²).
+fn hint_edges(input: &TriMesh, h: f64) -> Vec<f64> {
+    let budget = (HINT_FACES_PER_INPUT_FACE * input.faces.len() as f64).max(HINT_MIN_FACES);
+    let faces_at = |e: f64| input.area() / (3f64.sqrt() / 4.0 * e * e);
     (1..=8)
-        .map(|k| opts.edge_mm / f64::powi(2.0, k))
-        .find(|&h| {
-            let o = RemeshOptions {
-                edge_mm: h,
-                adaptive: opts.adaptive.map(|a| crate::remesh::AdaptiveSizing {
-                    min_edge_mm: a.min_edge_mm.min(h),
-                    ..a
-                }),
-                ..opts.clone()
-            };
-            remesh(input, &o).is_ok_and(|out| check(input, &out, h, seed).is_ok())
-        })
+        .map(|k| h / f64::powi(2.0, k))
+        .take_while(|&e| faces_at(e) <= budget)
+        .collect()
+}
+
+/// The first of `edges` whose remesh of `input` passes [`check`].
+fn largest_usable_edge(
+    input: &TriMesh,
+    opts: &RemeshOptions,
+    edges: &[f64],
+    seed: u64,
+) -> Option<f64> {
+    edges.iter().copied().find(|&h| {
+        let o = RemeshOptions {
+            edge_mm: h,
+            adaptive: opts.adaptive.map(|a| crate::remesh::AdaptiveSizing {
+                min_edge_mm: a.min_edge_mm.min(h),
+                ..a
+            }),
+            ..opts.clone()
+        };
+        remesh(input, &o).is_ok_and(|out| check(input, &out, h, seed).is_ok())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::shapes::icosphere;
+
+    /// The hint's edges halve from h/2 and stop before a remesh would exceed its face budget:
+    /// a sphere of radius 100 mm (about 125,000 mm², 1,280 faces: the 10⁶-face floor) at
+    /// h = 4 mm takes 2 and 1 mm (about 0.29 M faces at 1), not 0.5 (1.16 M).
+    #[test]
+    fn the_hint_search_stays_within_its_face_budget() {
+        let sphere = icosphere(100.0, 3);
+        assert_eq!(hint_edges(&sphere, 4.0), vec![2.0, 1.0]);
+        // A small one reaches h/256.
+        assert_eq!(hint_edges(&icosphere(1.0, 3), 4.0).len(), 8);
+    }
 }
