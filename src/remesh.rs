@@ -107,6 +107,10 @@ pub fn remesh(input: &TriMesh, opts: &RemeshOptions) -> Result<TriMesh, RemeshEr
     Ok(r.mesh.to_trimesh())
 }
 
+/// A triangle whose edge cross product is below this share of its two edges' squared lengths
+/// has (nearly) no area, and so no normal direction to compare.
+const DEGENERATE_CROSS: f64 = 1e-9;
+
 /// The most faces a remesh may make.
 const MAX_FACES: f64 = 5e7;
 /// The most iterations (and relaxation passes per iteration).
@@ -519,10 +523,13 @@ impl<'r, 'a> Remesher<'r, 'a> {
                     .map(|v| m.pos[v as usize]);
                 let before = worst_cos([a, b, c]).max(worst_cos([b, a, d]));
                 let after = worst_cos([d, c, a]).max(worst_cos([c, d, b]));
-                let dihedral_ok = match (
-                    m.face_cross(f0).try_normalize(0.0),
-                    m.face_cross(f1).try_normalize(0.0),
-                ) {
+                // A face of (nearly) no area has no direction to keep: a cap whose corner lies
+                // on its long edge is removed by flipping that edge.
+                let direction = |f: u32, p: [Point3<f64>; 3]| {
+                    let scale = (p[1] - p[0]).norm_squared() + (p[2] - p[0]).norm_squared();
+                    m.face_cross(f).try_normalize(DEGENERATE_CROSS * scale)
+                };
+                let dihedral_ok = match (direction(f0, [a, b, c]), direction(f1, [b, a, d])) {
                     (Some(x), Some(y)) => x.dot(&y) > cos30,
                     _ => true,
                 };
