@@ -134,7 +134,7 @@ impl IndexReport {
         }
         let Some(best) = self.held_out_best else {
             return Some(format!(
-                "the held-out views find no best-fitting index with the result: the estimate {used:.4} is unconfirmed"
+                "the estimate {used:.4} is unconfirmed: the held-out views find no best-fitting index with the result (or the run holds no views out)"
             ));
         };
         ((best.ior - used).abs() > WARN_OFFSET).then(|| {
