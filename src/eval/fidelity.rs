@@ -134,7 +134,8 @@ pub fn remesh_checked(
 /// area √3/4·e²).
 fn hint_edges(input: &TriMesh, h: f64) -> Vec<f64> {
     let budget = (HINT_FACES_PER_INPUT_FACE * input.faces.len() as f64).max(HINT_MIN_FACES);
-    let faces_at = |e: f64| input.area() / (3f64.sqrt() / 4.0 * e * e);
+    let area = input.area();
+    let faces_at = |e: f64| area / (3f64.sqrt() / 4.0 * e * e);
     (1..=8)
         .map(|k| h / f64::powi(2.0, k))
         .take_while(|&e| faces_at(e) <= budget)
