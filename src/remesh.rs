@@ -645,3 +645,49 @@ impl<'r, 'a> Remesher<'r, 'a> {
         self.feature = map.edge_data(&self.feature);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A cap — a triangle whose corner E lies (to rounding, 1e-15 mm off) on its long edge AB,
+    /// as projecting onto a flat face can leave one — is flipped away by the last flips, although
+    /// its normal, from a cross product of no size, points anywhere (here 117° from its
+    /// neighbour's across AB, beyond the flips' 30° dihedral limit). A closed mesh of 6 faces:
+    /// the cap ABE, ABE's two neighbours in its plane towards C, and a tent to the apex T.
+    #[test]
+    fn a_cap_of_no_area_is_flipped_away() {
+        let p = |x, y, z| Point3::new(x, y, z);
+        let [a, b, c, e, t] = [0, 1, 2, 3, 4];
+        let mesh = TriMesh::new(
+            vec![
+                p(0.0, 0.0, 0.0),
+                p(2.0, 0.0, 0.0),
+                p(1.0, -1.0, 0.0),
+                p(1.0, 1e-15, 0.0),
+                p(1.0, 0.5, 1.0),
+            ],
+            vec![
+                [a, b, e],
+                [a, e, c],
+                [e, b, c],
+                [b, a, t],
+                [a, c, t],
+                [c, b, t],
+            ],
+        );
+        let degenerate = |m: &TriMesh| {
+            validate(m)
+                .defects
+                .iter()
+                .any(|d| matches!(d, Defect::Degenerate { .. }))
+        };
+        assert!(degenerate(&mesh), "the input holds the cap");
+        let device = Device::new().unwrap();
+        let reference = Reference::new(&device, &mesh, &RemeshOptions::uniform(1.0)).unwrap();
+        let mut r = Remesher::new(&mesh, &reference, None);
+        r.improve_angles();
+        let out = r.mesh.to_trimesh();
+        assert!(!degenerate(&out), "{:?}", validate(&out).defects);
+    }
+}
