@@ -104,31 +104,55 @@ fn evidence(
 }
 
 /// Rule 3's default threshold: half the share of light two air–glass interfaces reflect at normal
-/// incidence for refractive index `ior` (Fresnel: R = ((n − 1)/(n + 1))², loss 1 − (1 − R)²;
-/// 7.1 % for n = 1.4723), or five times `noise` (the robust standard deviation of the white ratio
-/// on background pixels) if that is larger.
+/// incidence for refractive index `ior` ([`normal_incidence_loss`]), or five times `noise` (the
+/// robust standard deviation of the white ratio on background pixels) if that is larger.
 pub fn auto_white_drop(ior: f64, noise: f32) -> f32 {
-    let r = ((ior - 1.0) / (ior + 1.0)).powi(2);
-    let loss = 1.0 - (1.0 - r) * (1.0 - r);
-    (0.5 * loss as f32).max(5.0 * noise)
+    (0.5 * normal_incidence_loss(ior)).max(5.0 * noise)
 }
 
-/// Robust standard deviation (1.4826 × median absolute deviation) of the white ratio over the
-/// pixels rules 1 and 2 call background; 0 without a captured background.
-fn ratio_noise(ev: &[Evidence]) -> f32 {
+/// The share of light two air–glass interfaces of refractive index `ior` reflect at normal
+/// incidence, where Fresnel transmittance is highest (R = ((n − 1)/(n + 1))², loss
+/// 1 − (1 − R)²; 7.1 % for n = 1.4723).
+fn normal_incidence_loss(ior: f64) -> f32 {
+    let r = ((ior - 1.0) / (ior + 1.0)).powi(2);
+    (1.0 - (1.0 - r) * (1.0 - r)) as f32
+}
+
+/// The white ratio over the pixels rules 1 and 2 call background: its median and robust
+/// standard deviation (1.4826 × median absolute deviation); `None` with fewer than 100 such
+/// pixels (or without a captured background).
+fn background_ratio(ev: &[Evidence]) -> Option<(f32, f32)> {
     let mut r: Vec<f32> = ev
         .iter()
         .filter(|e| e.decoded && !e.bent_or_lost)
         .filter_map(|e| e.ratio)
         .collect();
     if r.len() < 100 {
-        return 0.0;
+        return None;
     }
-    let mid = r.len() / 2;
-    let median = *r.select_nth_unstable_by(mid, f32::total_cmp).1;
+    let median = median_of(&mut r);
     let mut dev: Vec<f32> = r.iter().map(|x| (x - median).abs()).collect();
-    1.4826 * *dev.select_nth_unstable_by(mid, f32::total_cmp).1
+    Some((median, 1.4826 * median_of(&mut dev)))
 }
+
+/// The median of a non-empty `values` (the upper one of an even count), reordering them.
+fn median_of(values: &mut [f32]) -> f32 {
+    let mid = values.len() / 2;
+    *values.select_nth_unstable_by(mid, f32::total_cmp).1
+}
+
+/// What the white image tells about a view's holes: each pixel's white ratio (NaN where the
+/// background was too dark for one), the background's median ratio, and
+/// [`normal_incidence_loss`] for the scan's index.
+pub struct WhiteLight {
+    pub ratio: Vec<f32>,
+    pub background: f32,
+    pub loss: f32,
+}
+
+/// A hole's pixels away from its rim (no object 4-neighbour) with a white ratio that
+/// [`clean`] needs to judge it by its light.
+const MIN_HOLE_SAMPLES: usize = 10;
 
 /// What a view's captures show per pixel (row-major), for its silhouette.
 pub struct ViewPixels<'a> {
@@ -142,15 +166,22 @@ pub struct ViewPixels<'a> {
     pub background_share: Option<&'a [f32]>,
 }
 
-/// The raw silhouette of a view (rules 1–3 and the edge trim, before clean-up): 255 for object
-/// pixels. Returns the mask and the white-drop threshold used (`None` without a captured
-/// background). `ior`: the object's refractive index (for [`auto_white_drop`]).
+/// A view's raw silhouette (rules 1–3 and the edge trim, before clean-up): 255 for object
+/// pixels, and with a captured background what its white image shows (for [`clean`]).
+pub struct RawMask {
+    pub mask: Vec<u8>,
+    /// Rule 3's threshold (`None` without a captured background).
+    pub white_drop: Option<f32>,
+    pub light: Option<WhiteLight>,
+}
+
+/// The raw silhouette of a view. `ior`: the object's refractive index (for [`auto_white_drop`]).
 pub fn raw_mask(
     view: &ViewPixels,
     background: &[BackgroundPixel],
     ior: f64,
     o: &MaskOptions,
-) -> (Vec<u8>, Option<f32>) {
+) -> RawMask {
     let ViewPixels {
         width,
         decoded,
@@ -166,9 +197,10 @@ pub fn raw_mask(
         .map(|(((d, &lit), &w), bg)| evidence(d, lit, w, bg, o))
         .collect();
     let captured = background.iter().any(|b| b.white.is_some());
+    let stats = background_ratio(&ev);
     let drop = captured.then(|| {
         o.white_drop
-            .unwrap_or_else(|| auto_white_drop(ior, ratio_noise(&ev)))
+            .unwrap_or_else(|| auto_white_drop(ior, stats.map_or(0.0, |(_, noise)| noise)))
     });
     let mut mask: Vec<u8> = ev
         .iter()
@@ -184,7 +216,18 @@ pub fn raw_mask(
     if captured {
         trim_mixed_edge(&mut mask, &ev, width, background_share);
     }
-    (mask, drop)
+    let light = stats
+        .filter(|_| captured)
+        .map(|(background, _)| WhiteLight {
+            ratio: ev.iter().map(|e| e.ratio.unwrap_or(f32::NAN)).collect(),
+            background,
+            loss: normal_incidence_loss(ior),
+        });
+    RawMask {
+        mask,
+        white_drop: drop,
+        light,
+    }
 }
 
 /// Rule 1: decoded, to a point away from the background's.
@@ -299,65 +342,133 @@ fn any_4_neighbour(i: usize, width: usize, height: usize, pred: impl Fn(usize) -
         || (y + 1 < height && pred(i + width))
 }
 
-/// Drops small object regions (to 0) and marks holes that are small or thin (at most 2 pixels
-/// wide on average, such as the line where a ray through the lens centre decodes like the
-/// background) as [`MASK_FILLED`], in place; 8-connected regions; a background region touching
-/// the image border is no hole.
-pub fn clean(mask: &mut [u8], width: i32, height: i32, o: &MaskOptions) -> Result<()> {
-    let (object, background) = ((MASK_OBJECT, 0), (0, MASK_FILLED));
-    relabel_regions(mask, width, height, object, |area, _, _, _| {
-        area < o.min_component_px
-    })?;
-    relabel_regions(mask, width, height, background, |area, w, h, border| {
-        !border && (area < o.max_hole_px || area <= 2 * w.max(h))
-    })?;
-    Ok(())
-}
-
-/// Sets the 8-connected regions of value `from` for which `relabel(area, width, height,
-/// touches_border)` (pixels) holds to `to`.
-fn relabel_regions(
+/// Drops small object regions (to 0) and marks as [`MASK_FILLED`] the holes that are small,
+/// thin (at most 2 pixels wide on average, such as the line where a ray through the lens centre
+/// decodes like the background) or, with `light`, darker than the background (glass the rays
+/// cross nearly undeflected: [`shows_glass`]), in place; 8-connected regions; a background
+/// region touching the image border is no hole.
+pub fn clean(
     mask: &mut [u8],
     width: i32,
     height: i32,
-    (from, to): (u8, u8),
-    relabel: impl Fn(i32, i32, i32, bool) -> bool,
+    o: &MaskOptions,
+    light: Option<&WhiteLight>,
 ) -> Result<()> {
-    let sel: Vec<u8> = mask
+    let specks = Regions::of(mask, width, height, MASK_OBJECT)?;
+    let chosen: Vec<bool> = specks
+        .stats
         .iter()
-        .map(|&m| if m == from { 255 } else { 0 })
+        .map(|r| r.area < o.min_component_px)
         .collect();
-    let img = Mat::new_rows_cols_with_data(height, width, &sel)?;
-    let (mut labels, mut stats, mut centroids) = (Mat::default(), Mat::default(), Mat::default());
-    let n = opencv::imgproc::connected_components_with_stats(
-        &img,
-        &mut labels,
-        &mut stats,
-        &mut centroids,
-        8,
-        CV_32S,
-    )?;
-    use opencv::imgproc::{CC_STAT_AREA, CC_STAT_HEIGHT, CC_STAT_LEFT, CC_STAT_TOP, CC_STAT_WIDTH};
-    let chosen: Vec<bool> = (0..n)
-        .map(|l| -> Result<bool> {
-            let st = |k| stats.at_2d::<i32>(l, k).copied();
-            let (x, y, w, h) = (
-                st(CC_STAT_LEFT)?,
-                st(CC_STAT_TOP)?,
-                st(CC_STAT_WIDTH)?,
-                st(CC_STAT_HEIGHT)?,
-            );
-            let border = x == 0 || y == 0 || x + w == width || y + h == height;
-            Ok(l > 0 && relabel(st(CC_STAT_AREA)?, w, h, border))
+    specks.relabel(mask, &chosen, 0);
+    let holes = Regions::of(mask, width, height, 0)?;
+    let glass = light.map(|l| holes.showing_glass(mask, width as usize, l));
+    let chosen: Vec<bool> = (holes.stats.iter().enumerate())
+        .map(|(l, r)| {
+            let small_or_thin = r.area < o.max_hole_px || r.area <= 2 * r.width.max(r.height);
+            !r.border && (small_or_thin || glass.as_ref().is_some_and(|g| g[l]))
         })
-        .collect::<Result<_>>()?;
-    let labels = labels.data_typed::<i32>()?;
-    for (m, &l) in mask.iter_mut().zip(labels) {
-        if chosen[l as usize] {
-            *m = to;
+        .collect();
+    holes.relabel(mask, &chosen, MASK_FILLED);
+    Ok(())
+}
+
+/// The 8-connected regions of one value in a mask.
+struct Regions {
+    /// Each pixel's region; 0 for pixels of other values.
+    labels: Vec<i32>,
+    /// Per region (index = label; label 0 is the other pixels and never chosen).
+    stats: Vec<Region>,
+}
+
+/// A region's size in pixels and whether it touches the image border.
+struct Region {
+    area: i32,
+    width: i32,
+    height: i32,
+    border: bool,
+}
+
+impl Regions {
+    /// The regions of value `value` in `mask` (`width` × `height`, row-major).
+    fn of(mask: &[u8], width: i32, height: i32, value: u8) -> Result<Self> {
+        let sel: Vec<u8> = mask
+            .iter()
+            .map(|&m| if m == value { 255 } else { 0 })
+            .collect();
+        let img = Mat::new_rows_cols_with_data(height, width, &sel)?;
+        let (mut labels, mut stats, mut centroids) =
+            (Mat::default(), Mat::default(), Mat::default());
+        let n = opencv::imgproc::connected_components_with_stats(
+            &img,
+            &mut labels,
+            &mut stats,
+            &mut centroids,
+            8,
+            CV_32S,
+        )?;
+        use opencv::imgproc::{
+            CC_STAT_AREA, CC_STAT_HEIGHT, CC_STAT_LEFT, CC_STAT_TOP, CC_STAT_WIDTH,
+        };
+        let stats = (0..n)
+            .map(|l| -> Result<Region> {
+                let st = |k| stats.at_2d::<i32>(l, k).copied();
+                let (x, y, w, h) = (
+                    st(CC_STAT_LEFT)?,
+                    st(CC_STAT_TOP)?,
+                    st(CC_STAT_WIDTH)?,
+                    st(CC_STAT_HEIGHT)?,
+                );
+                Ok(Region {
+                    area: st(CC_STAT_AREA)?,
+                    width: w,
+                    height: h,
+                    border: x == 0 || y == 0 || x + w == width || y + h == height,
+                })
+            })
+            .collect::<Result<_>>()?;
+        let labels = labels.data_typed::<i32>()?.to_vec();
+        Ok(Self { labels, stats })
+    }
+
+    /// Sets the pixels of the `chosen` regions (by label; label 0 never) to `to`.
+    fn relabel(&self, mask: &mut [u8], chosen: &[bool], to: u8) {
+        for (m, &l) in mask.iter_mut().zip(&self.labels) {
+            if l > 0 && chosen[l as usize] {
+                *m = to;
+            }
         }
     }
-    Ok(())
+
+    /// Per region: whether its light shows glass ([`shows_glass`]), judged from its pixels with
+    /// no object 4-neighbour in `mask` (a rim pixel may mix the object's light in).
+    fn showing_glass(&self, mask: &[u8], width: usize, light: &WhiteLight) -> Vec<bool> {
+        let height = mask.len() / width.max(1);
+        let mut ratios: Vec<Vec<f32>> = vec![Vec::new(); self.stats.len()];
+        for (i, &l) in self.labels.iter().enumerate() {
+            let r = light.ratio[i];
+            if l > 0 && !r.is_nan() && !any_4_neighbour(i, width, height, |j| mask[j] != 0) {
+                ratios[l as usize].push(r);
+            }
+        }
+        ratios.iter_mut().map(|r| shows_glass(r, light)).collect()
+    }
+}
+
+/// A hole shows glass — rays that cross it nearly undeflected, so that rule 1 cannot see them,
+/// and not dark enough for rule 3 pixel by pixel (light the glass reflects inside adds to
+/// theirs) — when even the brightest tenth of its `ratios` (at least [`MIN_HOLE_SAMPLES`]) lies
+/// below the background's median ratio by more than a quarter of [`normal_incidence_loss`].
+/// Air passes the monitor's light whole, so a true hole's brightest pixels match the background,
+/// even where the blur darkens the rest of it next to its rim; the glass's brightest do not.
+/// docs/decisions.md#holes-in-a-silhouette-that-show-glass gives the measurements.
+fn shows_glass(ratios: &mut [f32], light: &WhiteLight) -> bool {
+    if ratios.len() < MIN_HOLE_SAMPLES {
+        return false;
+    }
+    let bright = ratios.len() * 9 / 10;
+    let p90 = *ratios.select_nth_unstable_by(bright, f32::total_cmp).1;
+    p90 < light.background - 0.25 * light.loss
 }
 
 #[cfg(test)]
@@ -383,7 +494,7 @@ mod tests {
         mask[at(32, 10)] = MASK_OBJECT;
         mask[at(33, 10)] = MASK_OBJECT;
         let before = mask.clone();
-        clean(&mut mask, w as i32, h as i32, &MaskOptions::default()).unwrap();
+        clean(&mut mask, w as i32, h as i32, &MaskOptions::default(), None).unwrap();
         for (i, (&b, &a)) in before.iter().zip(&mask).enumerate() {
             let (x, y) = (i % w, i / w);
             let expected = if (12..15).contains(&x) && (12..15).contains(&y) {
@@ -394,6 +505,50 @@ mod tests {
                 b
             };
             assert_eq!(a, expected, "pixel ({x}, {y})");
+        }
+    }
+
+    /// Two holes of 4 × 20 pixels in an object: one shows the background through air (its rim
+    /// columns darkened by the blur, its middle ones as bright as the background), the other
+    /// glass crossed nearly undeflected (5 % darker throughout, rule 3 needing 5.2 % at 1.60).
+    #[test]
+    fn a_hole_whose_light_shows_glass_is_filled_and_one_of_air_is_kept() {
+        let (w, h) = (60usize, 40usize);
+        let at = |x: usize, y: usize| y * w + x;
+        let mut mask = vec![0u8; w * h];
+        let mut ratio = vec![1.0f32; w * h];
+        for y in 5..35 {
+            for x in 5..55 {
+                mask[at(x, y)] = MASK_OBJECT;
+                ratio[at(x, y)] = 0.9;
+            }
+        }
+        let (air, glass) = (15..19, 35..39);
+        for y in 10..30 {
+            for (k, x) in air.clone().enumerate() {
+                mask[at(x, y)] = 0;
+                ratio[at(x, y)] = [0.90, 0.97, 0.995, 0.90][k];
+            }
+            for x in glass.clone() {
+                mask[at(x, y)] = 0;
+                ratio[at(x, y)] = if (x + y) % 2 == 0 { 0.95 } else { 0.96 };
+            }
+        }
+        let light = WhiteLight {
+            ratio,
+            background: 1.0,
+            loss: normal_incidence_loss(1.6),
+        };
+        let o = MaskOptions::default();
+        let mut without = mask.clone();
+        clean(&mut without, w as i32, h as i32, &o, None).unwrap();
+        clean(&mut mask, w as i32, h as i32, &o, Some(&light)).unwrap();
+        for y in 10..30 {
+            for x in air.clone().chain(glass.clone()) {
+                assert_eq!(without[at(x, y)], 0, "pixel ({x}, {y}) without the light");
+                let expected = if glass.contains(&x) { MASK_FILLED } else { 0 };
+                assert_eq!(mask[at(x, y)], expected, "pixel ({x}, {y})");
+            }
         }
     }
 }

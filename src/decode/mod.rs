@@ -27,7 +27,7 @@ use coherence::{background_share, fine_bits, FineDiffs};
 use graycode::{bit_contrasts, decode_view, BitTest, PixelDecode};
 use mask::{
     clean, outline_coverage, pixels_at_monitor_edge, raw_mask, BackgroundPixel, MaskOptions,
-    ViewPixels,
+    RawMask, ViewPixels,
 };
 
 /// Thresholds of decoding.
@@ -449,8 +449,12 @@ impl ViewWriter<'_> {
             white: &cap.white,
             background_share: share.as_deref(),
         };
-        let (mut mask, white_drop) = raw_mask(&view, bg, ior, &o.mask);
-        clean(&mut mask, w, h, &o.mask)?;
+        let RawMask {
+            mut mask,
+            white_drop,
+            light,
+        } = raw_mask(&view, bg, ior, &o.mask);
+        clean(&mut mask, w, h, &o.mask, light.as_ref())?;
         let mut monitor = Vec::with_capacity(mask.len());
         let mut preview = Vec::with_capacity(mask.len());
         let (mut object, mut decoded, mut complete) = (0usize, 0usize, 0usize);
