@@ -18,8 +18,9 @@
 //! covered, judged from how much of the background's fine code it still shows
 //! ([`super::coherence`]), or from its white ratio where the background has no reliable fine
 //! bits there. Last, connected object regions smaller than
-//! `min_component_px` are dropped and holes smaller than `max_hole_px` (or thin) filled with
-//! [`MASK_FILLED`], which the hull counts as object and the losses as background.
+//! `min_component_px` are dropped and holes smaller than `max_hole_px` (or thin, or, with a
+//! captured background, showing glass: [`shows_glass`]) filled with [`MASK_FILLED`], which the
+//! hull counts as object and the losses as background.
 //!
 //! Without a captured background, the background point is predicted from the calibrated screen
 //! pose (the camera ray of each pixel meets the monitor plane), and rule 3 and the edge trim are
@@ -72,6 +73,10 @@ struct Evidence {
     decoded: bool,
     /// Rules 1 or 2: the decoded point moved, or the light was lost.
     bent_or_lost: bool,
+    /// How far the decoded point lies from the background's, over rule 1's threshold (the larger
+    /// axis; > 1 where rule 1 holds); NaN where nothing decoded or the background shows no
+    /// monitor.
+    shift: f32,
     /// White intensity over the background's, where the background was captured bright enough.
     ratio: Option<f32>,
 }
@@ -84,14 +89,16 @@ fn evidence(
     o: &MaskOptions,
 ) -> Evidence {
     let decoded = lit && d.u.bits > 0 && d.v.bits > 0;
-    let bent_or_lost = match (decoded, bg.point) {
-        (true, Some((bu, bv, cu, cv))) => {
-            (d.u.coord - bu).abs() > o.shift_px + (d.u.cell as f32 + cu) / 2.0
-                || (d.v.coord - bv).abs() > o.shift_px + (d.v.cell as f32 + cv) / 2.0
-        }
-        (false, Some(_)) => true,
-        (_, None) => false,
+    let over = |coord: f32, b: f32, cell: u32, cb: f32| {
+        (coord - b).abs() / (o.shift_px + (cell as f32 + cb) / 2.0)
     };
+    let shift = match (decoded, bg.point) {
+        (true, Some((bu, bv, cu, cv))) => {
+            over(d.u.coord, bu, d.u.cell, cu).max(over(d.v.coord, bv, d.v.cell, cv))
+        }
+        _ => f32::NAN,
+    };
+    let bent_or_lost = shift > 1.0 || (!decoded && bg.point.is_some());
     let ratio = bg
         .white
         .filter(|&bw| bw >= MIN_BACKGROUND_WHITE)
@@ -99,6 +106,7 @@ fn evidence(
     Evidence {
         decoded,
         bent_or_lost,
+        shift,
         ratio,
     }
 }
@@ -141,18 +149,23 @@ fn median_of(values: &mut [f32]) -> f32 {
     *values.select_nth_unstable_by(mid, f32::total_cmp).1
 }
 
-/// What the white image tells about a view's holes: each pixel's white ratio (NaN where the
-/// background was too dark for one), the background's median ratio, and
-/// [`normal_incidence_loss`] for the scan's index.
-pub struct WhiteLight {
+/// What a view's captures tell about its holes, with a captured background: each pixel's white
+/// ratio (NaN where the background was too dark for one) and decoded point's shift
+/// ([`Evidence::shift`]), the background's median ratio, and [`normal_incidence_loss`] for the
+/// scan's index.
+pub struct HoleEvidence {
     pub ratio: Vec<f32>,
+    pub shift: Vec<f32>,
     pub background: f32,
     pub loss: f32,
 }
 
-/// A hole's pixels away from its rim (no object 4-neighbour) with a white ratio that
-/// [`clean`] needs to judge it by its light.
+/// The pixels with a white ratio (away from the rim) or a shift [`clean`] needs to judge a hole
+/// by either.
 const MIN_HOLE_SAMPLES: usize = 10;
+
+/// A hole whose pixels' median shift ([`Evidence::shift`]) exceeds this shows glass.
+const GLASS_MEDIAN_SHIFT: f32 = 0.35;
 
 /// What a view's captures show per pixel (row-major), for its silhouette.
 pub struct ViewPixels<'a> {
@@ -172,7 +185,7 @@ pub struct RawMask {
     pub mask: Vec<u8>,
     /// Rule 3's threshold (`None` without a captured background).
     pub white_drop: Option<f32>,
-    pub light: Option<WhiteLight>,
+    pub holes: Option<HoleEvidence>,
 }
 
 /// The raw silhouette of a view. `ior`: the object's refractive index (for [`auto_white_drop`]).
@@ -216,17 +229,18 @@ pub fn raw_mask(
     if captured {
         trim_mixed_edge(&mut mask, &ev, width, background_share);
     }
-    let light = stats
+    let holes = stats
         .filter(|_| captured)
-        .map(|(background, _)| WhiteLight {
+        .map(|(background, _)| HoleEvidence {
             ratio: ev.iter().map(|e| e.ratio.unwrap_or(f32::NAN)).collect(),
+            shift: ev.iter().map(|e| e.shift).collect(),
             background,
             loss: normal_incidence_loss(ior),
         });
     RawMask {
         mask,
         white_drop: drop,
-        light,
+        holes,
     }
 }
 
@@ -344,15 +358,15 @@ fn any_4_neighbour(i: usize, width: usize, height: usize, pred: impl Fn(usize) -
 
 /// Drops small object regions (to 0) and marks as [`MASK_FILLED`] the holes that are small,
 /// thin (at most 2 pixels wide on average, such as the line where a ray through the lens centre
-/// decodes like the background) or, with `light`, darker than the background (glass the rays
-/// cross nearly undeflected: [`shows_glass`]), in place; 8-connected regions; a background
+/// decodes like the background) or, with a captured background's `evidence`, showing glass the
+/// rays cross nearly undeflected ([`shows_glass`]), in place; 8-connected regions; a background
 /// region touching the image border is no hole.
 pub fn clean(
     mask: &mut [u8],
     width: i32,
     height: i32,
     o: &MaskOptions,
-    light: Option<&WhiteLight>,
+    evidence: Option<&HoleEvidence>,
 ) -> Result<()> {
     let specks = Regions::of(mask, width, height, MASK_OBJECT)?;
     let chosen: Vec<bool> = specks
@@ -362,7 +376,7 @@ pub fn clean(
         .collect();
     specks.relabel(mask, &chosen, 0);
     let holes = Regions::of(mask, width, height, 0)?;
-    let glass = light.map(|l| holes.showing_glass(mask, width as usize, l));
+    let glass = evidence.map(|e| holes.showing_glass(mask, width as usize, e));
     let chosen: Vec<bool> = (holes.stats.iter().enumerate())
         .map(|(l, r)| {
             let small_or_thin = r.area < o.max_hole_px || r.area <= 2 * r.width.max(r.height);
@@ -440,35 +454,48 @@ impl Regions {
         }
     }
 
-    /// Per region: whether its light shows glass ([`shows_glass`]), judged from its pixels with
-    /// no object 4-neighbour in `mask` (a rim pixel may mix the object's light in).
-    fn showing_glass(&self, mask: &[u8], width: usize, light: &WhiteLight) -> Vec<bool> {
+    /// Per region: whether it shows glass ([`shows_glass`]), judged from its pixels' shifts and
+    /// from the white ratios of those with no object 4-neighbour in `mask` (a rim pixel may mix
+    /// the object's light in).
+    fn showing_glass(&self, mask: &[u8], width: usize, holes: &HoleEvidence) -> Vec<bool> {
         let height = mask.len() / width.max(1);
         let mut ratios: Vec<Vec<f32>> = vec![Vec::new(); self.stats.len()];
+        let mut shifts: Vec<Vec<f32>> = vec![Vec::new(); self.stats.len()];
         for (i, &l) in self.labels.iter().enumerate() {
-            let r = light.ratio[i];
+            let (r, shift) = (holes.ratio[i], holes.shift[i]);
+            if l > 0 && !shift.is_nan() {
+                shifts[l as usize].push(shift);
+            }
             if l > 0 && !r.is_nan() && !any_4_neighbour(i, width, height, |j| mask[j] != 0) {
                 ratios[l as usize].push(r);
             }
         }
-        ratios.iter_mut().map(|r| shows_glass(r, light)).collect()
+        (ratios.iter_mut().zip(&mut shifts))
+            .map(|(r, s)| shows_glass(r, s, holes))
+            .collect()
     }
 }
 
 /// A hole shows glass — rays that cross it nearly undeflected, so that rule 1 cannot see them,
 /// and not dark enough for rule 3 pixel by pixel (light the glass reflects inside adds to
-/// theirs) — when even the brightest tenth of its `ratios` (at least [`MIN_HOLE_SAMPLES`]) lies
-/// below the background's median ratio by more than a quarter of [`normal_incidence_loss`].
-/// Air passes the monitor's light whole, so a true hole's brightest pixels match the background,
-/// even where the blur darkens the rest of it next to its rim; the glass's brightest do not.
+/// theirs) — when (with at least [`MIN_HOLE_SAMPLES`] values) either
+/// - even the brightest tenth of its `ratios` lies below the background's median ratio by more
+///   than a quarter of [`normal_incidence_loss`]: air passes the monitor's light whole, so a
+///   true hole's brightest pixels match the background, even where the blur darkens the rest
+///   of it next to its rim; or
+/// - the median of its `shifts` exceeds [`GLASS_MEDIAN_SHIFT`]: through air the decoded points
+///   are the background's, while across a band of glass they move from one side's bend to the
+///   other's (and decode to coarser cells).
+///
 /// docs/decisions.md#holes-in-a-silhouette-that-show-glass gives the measurements.
-fn shows_glass(ratios: &mut [f32], light: &WhiteLight) -> bool {
-    if ratios.len() < MIN_HOLE_SAMPLES {
-        return false;
-    }
-    let bright = ratios.len() * 9 / 10;
-    let p90 = *ratios.select_nth_unstable_by(bright, f32::total_cmp).1;
-    p90 < light.background - 0.25 * light.loss
+fn shows_glass(ratios: &mut [f32], shifts: &mut [f32], holes: &HoleEvidence) -> bool {
+    let dark = ratios.len() >= MIN_HOLE_SAMPLES && {
+        let bright = ratios.len() * 9 / 10;
+        let p90 = *ratios.select_nth_unstable_by(bright, f32::total_cmp).1;
+        p90 < holes.background - 0.25 * holes.loss
+    };
+    let moved = shifts.len() >= MIN_HOLE_SAMPLES && median_of(shifts) > GLASS_MEDIAN_SHIFT;
+    dark || moved
 }
 
 #[cfg(test)]
@@ -508,45 +535,59 @@ mod tests {
         }
     }
 
-    /// Two holes of 4 × 20 pixels in an object: one shows the background through air (its rim
-    /// columns darkened by the blur, its middle ones as bright as the background), the other
-    /// glass crossed nearly undeflected (5 % darker throughout, rule 3 needing 5.2 % at 1.60).
+    /// Three holes of 4 × 20 pixels in an object: one shows the background through air (its rim
+    /// columns darkened by the blur, its middle ones as bright as the background, its decoded
+    /// points the background's within a fifth of rule 1's threshold); one glass 5 % darker
+    /// throughout (rule 3 needing 5.2 % at 1.60) whose points barely moved; one glass as bright
+    /// as the air whose points moved by 0.7 of rule 1's threshold.
     #[test]
-    fn a_hole_whose_light_shows_glass_is_filled_and_one_of_air_is_kept() {
-        let (w, h) = (60usize, 40usize);
+    fn a_hole_that_shows_glass_is_filled_and_one_of_air_is_kept() {
+        let (w, h) = (70usize, 40usize);
         let at = |x: usize, y: usize| y * w + x;
         let mut mask = vec![0u8; w * h];
-        let mut ratio = vec![1.0f32; w * h];
+        let (mut ratio, mut shift) = (vec![1.0f32; w * h], vec![0.0f32; w * h]);
         for y in 5..35 {
-            for x in 5..55 {
+            for x in 5..65 {
                 mask[at(x, y)] = MASK_OBJECT;
-                ratio[at(x, y)] = 0.9;
+                (ratio[at(x, y)], shift[at(x, y)]) = (0.9, 3.0);
             }
         }
-        let (air, glass) = (15..19, 35..39);
+        let (air, dark, moved) = (15..19, 30..34, 45..49);
         for y in 10..30 {
             for (k, x) in air.clone().enumerate() {
                 mask[at(x, y)] = 0;
                 ratio[at(x, y)] = [0.90, 0.97, 0.995, 0.90][k];
+                shift[at(x, y)] = if (x + y) % 3 == 0 { 0.2 } else { 0.0 };
             }
-            for x in glass.clone() {
+            for x in dark.clone() {
                 mask[at(x, y)] = 0;
                 ratio[at(x, y)] = if (x + y) % 2 == 0 { 0.95 } else { 0.96 };
+                shift[at(x, y)] = 0.1;
+            }
+            for x in moved.clone() {
+                mask[at(x, y)] = 0;
+                ratio[at(x, y)] = 0.995;
+                shift[at(x, y)] = 0.7;
             }
         }
-        let light = WhiteLight {
+        let holes = HoleEvidence {
             ratio,
+            shift,
             background: 1.0,
             loss: normal_incidence_loss(1.6),
         };
         let o = MaskOptions::default();
         let mut without = mask.clone();
         clean(&mut without, w as i32, h as i32, &o, None).unwrap();
-        clean(&mut mask, w as i32, h as i32, &o, Some(&light)).unwrap();
+        clean(&mut mask, w as i32, h as i32, &o, Some(&holes)).unwrap();
         for y in 10..30 {
-            for x in air.clone().chain(glass.clone()) {
-                assert_eq!(without[at(x, y)], 0, "pixel ({x}, {y}) without the light");
-                let expected = if glass.contains(&x) { MASK_FILLED } else { 0 };
+            for x in air.clone().chain(dark.clone()).chain(moved.clone()) {
+                assert_eq!(
+                    without[at(x, y)],
+                    0,
+                    "pixel ({x}, {y}) without the evidence"
+                );
+                let expected = if air.contains(&x) { 0 } else { MASK_FILLED };
                 assert_eq!(mask[at(x, y)], expected, "pixel ({x}, {y})");
             }
         }

@@ -452,9 +452,9 @@ impl ViewWriter<'_> {
         let RawMask {
             mut mask,
             white_drop,
-            light,
+            holes,
         } = raw_mask(&view, bg, ior, &o.mask);
-        clean(&mut mask, w, h, &o.mask, light.as_ref())?;
+        clean(&mut mask, w, h, &o.mask, holes.as_ref())?;
         let mut monitor = Vec::with_capacity(mask.len());
         let mut preview = Vec::with_capacity(mask.len());
         let (mut object, mut decoded, mut complete) = (0usize, 0usize, 0usize);
