@@ -67,18 +67,19 @@ pub fn scan_targets(
     views: &[usize],
     weights: TargetWeights,
 ) -> Result<(Vec<ViewTargets>, Vec<usize>)> {
-    scan_targets_with(scan, views, weights, |t| t)
+    let decoded = DecodedScan::open(&scan.dir, (scan.camera.width, scan.camera.height))?;
+    scan_targets_with(scan, &decoded, views, weights, |t| t)
 }
 
-/// [`scan_targets`], each view passed through `keep` as soon as it is read (a sample of it: a
-/// view's whole targets are held only while it is read).
+/// [`scan_targets`] from the scan's opened `decoded` folder, each view passed through `keep` as
+/// soon as it is read (a sample of it: a view's whole targets are held only while it is read).
 pub fn scan_targets_with<T: Send>(
     scan: &Scan,
+    decoded: &DecodedScan,
     views: &[usize],
     weights: TargetWeights,
     keep: impl Fn(ViewTargets) -> T + Sync,
 ) -> Result<(Vec<T>, Vec<usize>)> {
-    let decoded = DecodedScan::open(&scan.dir, (scan.camera.width, scan.camera.height))?;
     let poses = scan.view_poses();
     let loaded: Vec<Result<Option<T>>> = views
         .par_iter()

@@ -59,18 +59,19 @@ pub fn load_inputs(
             (t, 1.0)
         }
     };
-    let (targets, skipped) = crate::loss::targets::scan_targets_with(scan, views, weights, keep)?;
-    let size = (scan.camera.width, scan.camera.height);
+    let decoded = DecodedScan::open(&scan.dir, (scan.camera.width, scan.camera.height))?;
+    let (targets, skipped) =
+        crate::loss::targets::scan_targets_with(scan, &decoded, views, weights, keep)?;
     let blur_source = CameraBlur {
         given_px: scan.config.blur_px,
-        measured: DecodedScan::open(&scan.dir, size)?.blur,
+        measured: decoded.blur,
     };
     let (targets, kept_shares): (Vec<ViewTargets>, Vec<f64>) = targets.into_iter().unzip();
     if targets.is_empty() {
         bail!("no decoded view to reconstruct from");
     }
-    let decoded: usize = targets.iter().map(|t| t.pixels.len()).sum();
-    if decoded == 0 {
+    let pixels: usize = targets.iter().map(|t| t.pixels.len()).sum();
+    if pixels == 0 {
         bail!("no object pixel has a decoded monitor point: check the decode (decoded/preview/)");
     }
     warnings.extend(
