@@ -265,23 +265,9 @@ fn a_hole_the_decoder_filled_is_inside_for_the_hull_and_outside_for_the_silhouet
 #[test]
 fn hull_of_a_simulated_torus_contains_it_and_keeps_its_hole() {
     let dir = tempfile::tempdir().unwrap();
-    // A torus standing up (axis horizontal), so its hole shows in most views.
-    let mut t = torus(40.0, 14.0, 64, 24);
-    for p in &mut t.positions {
-        *p = Point3::new(p.x, p.z, -p.y);
-    }
-    decoded_scan(dir.path(), &t, 36, (320, 240));
+    decoded_scan(dir.path(), &standing_torus(40.0, 14.0), 36, (320, 240));
     let out = dir.path().join("hull.ply");
-    let o = glasscan(&[
-        "hull",
-        dir.path().to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--voxel-mm",
-        "1.5",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let text = String::from_utf8_lossy(&o.stdout);
+    let text = hull_at_1_5_mm(dir.path(), &out);
     assert!(text.contains("genus 1"), "{text}");
     let hull = glasscan::mesh::io::read_mesh(&out).unwrap();
     ensure_valid(&hull).unwrap();
@@ -299,10 +285,6 @@ fn hull_of_a_simulated_torus_contains_it_and_keeps_its_hole() {
 #[test]
 fn a_torus_captured_with_physical_light_keeps_its_hole_through_decode() {
     let dir = tempfile::tempdir().unwrap();
-    let mut t = torus(30.0, 10.0, 64, 24);
-    for p in &mut t.positions {
-        *p = Point3::new(p.x, p.z, -p.y);
-    }
     let scan = dir.path().join("scan");
     let opts = SimulateOptions {
         views: 12,
@@ -315,10 +297,26 @@ fn a_torus_captured_with_physical_light_keeps_its_hole_through_decode() {
         transport: Transport::Physical,
         ..Default::default()
     };
+    let t = standing_torus(30.0, 10.0);
     simulate(&t, &scan, &opts, |_| ()).expect("simulate the torus");
     let o = glasscan(&["decode", scan.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let out = dir.path().join("hull.ply");
+    let text = hull_at_1_5_mm(&scan, &dir.path().join("hull.ply"));
+    assert!(text.contains("genus 1"), "{text}");
+}
+
+/// A torus of radii `major` and `minor` (mm) standing up (axis horizontal), so its hole shows in
+/// most views.
+fn standing_torus(major: f64, minor: f64) -> TriMesh {
+    let mut t = torus(major, minor, 64, 24);
+    for p in &mut t.positions {
+        *p = Point3::new(p.x, p.z, -p.y);
+    }
+    t
+}
+
+/// Runs `glasscan hull` on `scan` with 1.5 mm voxels into `out`; its standard output.
+fn hull_at_1_5_mm(scan: &std::path::Path, out: &std::path::Path) -> String {
     let o = glasscan(&[
         "hull",
         scan.to_str().unwrap(),
@@ -328,8 +326,7 @@ fn a_torus_captured_with_physical_light_keeps_its_hole_through_decode() {
         "1.5",
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let text = String::from_utf8_lossy(&o.stdout);
-    assert!(text.contains("genus 1"), "{text}");
+    String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
 #[test]
