@@ -164,7 +164,8 @@ pub struct HoleEvidence {
 /// by either.
 const MIN_HOLE_SAMPLES: usize = 10;
 
-/// A hole whose pixels' median shift ([`Evidence::shift`]) exceeds this shows glass.
+/// A hole whose pixels' median shift ([`Evidence::shift`]) exceeds this shows glass (measured:
+/// true holes 0.00–0.14, bands of glass 0.72–0.80).
 const GLASS_MEDIAN_SHIFT: f32 = 0.35;
 
 /// What a view's captures show per pixel (row-major), for its silhouette.
@@ -457,12 +458,12 @@ impl Regions {
     /// Per region: whether it shows glass ([`shows_glass`]), judged from its pixels' shifts and
     /// from the white ratios of those with no object 4-neighbour in `mask` (a rim pixel may mix
     /// the object's light in).
-    fn showing_glass(&self, mask: &[u8], width: usize, holes: &HoleEvidence) -> Vec<bool> {
+    fn showing_glass(&self, mask: &[u8], width: usize, evidence: &HoleEvidence) -> Vec<bool> {
         let height = mask.len() / width.max(1);
         let mut ratios: Vec<Vec<f32>> = vec![Vec::new(); self.stats.len()];
         let mut shifts: Vec<Vec<f32>> = vec![Vec::new(); self.stats.len()];
         for (i, &l) in self.labels.iter().enumerate() {
-            let (r, shift) = (holes.ratio[i], holes.shift[i]);
+            let (r, shift) = (evidence.ratio[i], evidence.shift[i]);
             if l > 0 && !shift.is_nan() {
                 shifts[l as usize].push(shift);
             }
@@ -471,7 +472,7 @@ impl Regions {
             }
         }
         (ratios.iter_mut().zip(&mut shifts))
-            .map(|(r, s)| shows_glass(r, s, holes))
+            .map(|(r, s)| shows_glass(r, s, evidence))
             .collect()
     }
 }
@@ -488,11 +489,11 @@ impl Regions {
 ///   other's (and decode to coarser cells).
 ///
 /// docs/decisions.md#holes-in-a-silhouette-that-show-glass gives the measurements.
-fn shows_glass(ratios: &mut [f32], shifts: &mut [f32], holes: &HoleEvidence) -> bool {
+fn shows_glass(ratios: &mut [f32], shifts: &mut [f32], evidence: &HoleEvidence) -> bool {
     let dark = ratios.len() >= MIN_HOLE_SAMPLES && {
         let bright = ratios.len() * 9 / 10;
         let p90 = *ratios.select_nth_unstable_by(bright, f32::total_cmp).1;
-        p90 < holes.background - 0.25 * holes.loss
+        p90 < evidence.background - 0.25 * evidence.loss
     };
     let moved = shifts.len() >= MIN_HOLE_SAMPLES && median_of(shifts) > GLASS_MEDIAN_SHIFT;
     dark || moved
