@@ -377,13 +377,19 @@ pub fn clean(
         .collect();
     specks.relabel(mask, &chosen, 0);
     let holes = Regions::of(mask, width, height, 0)?;
-    let glass = evidence.map(|e| holes.showing_glass(mask, width as usize, e));
-    let chosen: Vec<bool> = (holes.stats.iter().enumerate())
-        .map(|(l, r)| {
-            let small_or_thin = r.area < o.max_hole_px || r.area <= 2 * r.width.max(r.height);
-            !r.border && (small_or_thin || glass.as_ref().is_some_and(|g| g[l]))
-        })
+    let mut chosen: Vec<bool> = (holes.stats.iter())
+        .map(|r| !r.border && (r.area < o.max_hole_px || r.area <= 2 * r.width.max(r.height)))
         .collect();
+    if let Some(e) = evidence {
+        // Only the holes the sizes left open are judged by what they show.
+        let open: Vec<bool> = (holes.stats.iter().zip(&chosen))
+            .map(|(r, &c)| !r.border && !c)
+            .collect();
+        let glass = holes.showing_glass(mask, width as usize, e, &open);
+        for (c, g) in chosen.iter_mut().zip(glass) {
+            *c |= g;
+        }
+    }
     holes.relabel(mask, &chosen, MASK_FILLED);
     Ok(())
 }
@@ -455,19 +461,28 @@ impl Regions {
         }
     }
 
-    /// Per region: whether it shows glass ([`shows_glass`]), judged from its pixels' shifts and
-    /// from the white ratios of those with no object 4-neighbour in `mask` (a rim pixel may mix
-    /// the object's light in).
-    fn showing_glass(&self, mask: &[u8], width: usize, evidence: &HoleEvidence) -> Vec<bool> {
+    /// Per region: whether it shows glass ([`shows_glass`]), judged for the regions `judged`
+    /// (by label; false for the others) from its pixels' shifts and from the white ratios of
+    /// those with no object 4-neighbour in `mask` (a rim pixel may mix the object's light in).
+    fn showing_glass(
+        &self,
+        mask: &[u8],
+        width: usize,
+        evidence: &HoleEvidence,
+        judged: &[bool],
+    ) -> Vec<bool> {
         let height = mask.len() / width.max(1);
         let mut ratios: Vec<Vec<f32>> = vec![Vec::new(); self.stats.len()];
         let mut shifts: Vec<Vec<f32>> = vec![Vec::new(); self.stats.len()];
         for (i, &l) in self.labels.iter().enumerate() {
+            if l == 0 || !judged[l as usize] {
+                continue;
+            }
             let (r, shift) = (evidence.ratio[i], evidence.shift[i]);
-            if l > 0 && !shift.is_nan() {
+            if !shift.is_nan() {
                 shifts[l as usize].push(shift);
             }
-            if l > 0 && !r.is_nan() && !any_4_neighbour(i, width, height, |j| mask[j] != 0) {
+            if !r.is_nan() && !any_4_neighbour(i, width, height, |j| mask[j] != 0) {
                 ratios[l as usize].push(r);
             }
         }
