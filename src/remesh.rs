@@ -111,6 +111,13 @@ pub fn remesh(input: &TriMesh, opts: &RemeshOptions) -> Result<TriMesh, RemeshEr
 /// has (nearly) no area, and so no normal direction to compare.
 const DEGENERATE_CROSS: f64 = 1e-9;
 
+/// Face `f`'s unit normal; `None` for a face of (nearly) no area ([`DEGENERATE_CROSS`]).
+fn face_direction(m: &HalfEdgeMesh, f: u32) -> Option<Vector3<f64>> {
+    let [a, b, c] = m.face_vertices(f).map(|v| m.pos[v as usize]);
+    let scale = (b - a).norm_squared() + (c - a).norm_squared();
+    (b - a).cross(&(c - a)).try_normalize(DEGENERATE_CROSS * scale)
+}
+
 /// The most faces a remesh may make.
 const MAX_FACES: f64 = 5e7;
 /// The most iterations (and relaxation passes per iteration).
@@ -298,8 +305,8 @@ impl<'r, 'a> Remesher<'r, 'a> {
                 let cos_max = deg.to_radians().cos();
                 (0..mesh.edge_slots() as u32)
                     .map(|e| {
-                        let n0 = mesh.face_cross(mesh.face(2 * e)).try_normalize(0.0);
-                        let n1 = mesh.face_cross(mesh.face(2 * e + 1)).try_normalize(0.0);
+                        let n0 = face_direction(&mesh, mesh.face(2 * e));
+                        let n1 = face_direction(&mesh, mesh.face(2 * e + 1));
                         matches!((n0, n1), (Some(a), Some(b)) if a.dot(&b) < cos_max)
                     })
                     .collect()
@@ -525,11 +532,7 @@ impl<'r, 'a> Remesher<'r, 'a> {
                 let after = worst_cos([d, c, a]).max(worst_cos([c, d, b]));
                 // A face of (nearly) no area has no direction to keep: a cap whose corner lies
                 // on its long edge is removed by flipping that edge.
-                let direction = |f: u32, p: [Point3<f64>; 3]| {
-                    let scale = (p[1] - p[0]).norm_squared() + (p[2] - p[0]).norm_squared();
-                    m.face_cross(f).try_normalize(DEGENERATE_CROSS * scale)
-                };
-                let dihedral_ok = match (direction(f0, [a, b, c]), direction(f1, [b, a, d])) {
+                let dihedral_ok = match (face_direction(m, f0), face_direction(m, f1)) {
                     (Some(x), Some(y)) => x.dot(&y) > cos30,
                     _ => true,
                 };
@@ -650,16 +653,14 @@ impl<'r, 'a> Remesher<'r, 'a> {
 mod tests {
     use super::*;
 
-    /// A cap — a triangle whose corner E lies (to rounding, 1e-15 mm off) on its long edge AB,
-    /// as projecting onto a flat face can leave one — is flipped away by the last flips, although
-    /// its normal, from a cross product of no size, points anywhere (here 117° from its
-    /// neighbour's across AB, beyond the flips' 30° dihedral limit). A closed mesh of 6 faces:
-    /// the cap ABE, ABE's two neighbours in its plane towards C, and a tent to the apex T.
-    #[test]
-    fn a_cap_of_no_area_is_flipped_away() {
+    /// A closed mesh of 6 faces: a cap ABE — a triangle whose corner E lies (to rounding,
+    /// 1e-15 mm off) on its long edge AB, as projecting onto a flat face can leave one —, ABE's
+    /// two neighbours in its plane towards C, and a tent to the apex T (vertices 0–4: A, B, C,
+    /// E, T).
+    fn capped_tent() -> TriMesh {
         let p = |x, y, z| Point3::new(x, y, z);
         let [a, b, c, e, t] = [0, 1, 2, 3, 4];
-        let mesh = TriMesh::new(
+        TriMesh::new(
             vec![
                 p(0.0, 0.0, 0.0),
                 p(2.0, 0.0, 0.0),
@@ -675,7 +676,39 @@ mod tests {
                 [a, c, t],
                 [c, b, t],
             ],
-        );
+        )
+    }
+
+    /// The cap of [`capped_tent`] has no direction, so the edges it shares with its flat
+    /// neighbours (AE, EB; their normals 180° from the cap's cross product's) are no feature
+    /// lines, while the tent's edges to the flat base (AC, CB) are.
+    #[test]
+    fn a_cap_of_no_area_makes_no_feature_line() {
+        let mesh = capped_tent();
+        let device = Device::new().unwrap();
+        let reference = Reference::new(&device, &mesh, &RemeshOptions::uniform(1.0)).unwrap();
+        let r = Remesher::new(&mesh, &reference, Some(45.0));
+        let feature = |u: u32, v: u32| {
+            (0..r.mesh.edge_slots() as u32)
+                .find(|&e| {
+                    let [x, y] = r.mesh.edge_vertices(e);
+                    (x, y) == (u, v) || (x, y) == (v, u)
+                })
+                .map(|e| r.feature[e as usize])
+                .unwrap()
+        };
+        let [a, b, c, e] = [0, 1, 2, 3];
+        assert!(!feature(a, e) && !feature(e, b));
+        assert!(feature(a, c) && feature(c, b));
+    }
+
+    /// A cap — a triangle whose corner E lies (to rounding, 1e-15 mm off) on its long edge AB,
+    /// as projecting onto a flat face can leave one — is flipped away by the last flips, although
+    /// its normal, from a cross product of no size, points anywhere (here 117° from its
+    /// neighbour's across AB, beyond the flips' 30° dihedral limit; [`capped_tent`]).
+    #[test]
+    fn a_cap_of_no_area_is_flipped_away() {
+        let mesh = capped_tent();
         let degenerate = |m: &TriMesh| {
             validate(m)
                 .defects
