@@ -115,7 +115,9 @@ const DEGENERATE_CROSS: f64 = 1e-9;
 fn face_direction(m: &HalfEdgeMesh, f: u32) -> Option<Vector3<f64>> {
     let [a, b, c] = m.face_vertices(f).map(|v| m.pos[v as usize]);
     let scale = (b - a).norm_squared() + (c - a).norm_squared();
-    (b - a).cross(&(c - a)).try_normalize(DEGENERATE_CROSS * scale)
+    (b - a)
+        .cross(&(c - a))
+        .try_normalize(DEGENERATE_CROSS * scale)
 }
 
 /// The most faces a remesh may make.

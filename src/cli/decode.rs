@@ -47,16 +47,18 @@ pub struct DecodeArgs {
     /// auto, or a share in (0, 1)
     #[arg(long = "white-drop", default_value = "auto", value_parser = auto_or_open_share)]
     pub white_drop: AutoShare,
-    /// Object regions smaller than this are dropped, pixels.
-    #[arg(long = "min-component-px", default_value_t = 50, value_parser = clap::value_parser!(i32).range(0..))]
-    pub min_component_px: i32,
+    /// Object regions smaller than this share of the image's area are dropped (1.6e-4: 49 pixels
+    /// of a 640 × 480 image).
+    #[arg(long = "min-component", default_value_t = MaskOptions::default().min_component, value_parser = share)]
+    pub min_component: f64,
     /// Bits per sample of 16-bit captures, 9 to 16 (default: each view's, the smallest of 10, 12,
     /// 14 and 16 that holds its white image).
     #[arg(long = "bit-depth", value_parser = clap::value_parser!(u32).range(9..=16))]
     pub bit_depth: Option<u32>,
-    /// Holes smaller than this are filled, pixels.
-    #[arg(long = "max-hole-px", default_value_t = 50, value_parser = clap::value_parser!(i32).range(0..))]
-    pub max_hole_px: i32,
+    /// Holes smaller than this share of the image's area are filled (1.6e-4: 49 pixels of a
+    /// 640 × 480 image).
+    #[arg(long = "max-hole", default_value_t = MaskOptions::default().max_hole, value_parser = share)]
+    pub max_hole: f64,
 }
 
 pub fn run(a: &DecodeArgs) -> Result<()> {
@@ -71,8 +73,8 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         mask: MaskOptions {
             shift_px: a.shift_px,
             white_drop: a.white_drop.0,
-            min_component_px: a.min_component_px,
-            max_hole_px: a.max_hole_px,
+            min_component: a.min_component,
+            max_hole: a.max_hole,
         },
         bit_depth: a.bit_depth,
     };

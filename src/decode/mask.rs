@@ -17,10 +17,11 @@
 //! mixture of what the object and the background show) is object only if it is more than half
 //! covered, judged from how much of the background's fine code it still shows
 //! ([`super::coherence`]), or from its white ratio where the background has no reliable fine
-//! bits there. Last, connected object regions smaller than
-//! `min_component_px` are dropped and holes smaller than `max_hole_px` (or thin, or, with a
-//! captured background, showing glass: [`shows_glass`]) filled with [`MASK_FILLED`], which the
-//! hull counts as object and the losses as background.
+//! bits there. Last, small connected object regions (specks) are dropped and small or thin holes
+//! (or, with a captured background, holes showing glass: [`shows_glass`]) filled with
+//! [`MASK_FILLED`], which the hull counts as object and the losses as background. "Small" and
+//! "thin" are shares of the image ([`MaskOptions`]), so that a scene framed alike cleans alike
+//! at any camera resolution.
 //!
 //! Without a captured background, the background point is predicted from the calibrated screen
 //! pose (the camera ray of each pixel meets the monitor plane), and rule 3 and the edge trim are
@@ -33,26 +34,36 @@ use super::graycode::PixelDecode;
 use crate::scan::decoded::{is_object, MASK_FILLED, MASK_OBJECT};
 use crate::scan::outline::encode_coverage;
 
-/// Thresholds of the silhouette rules.
+/// Thresholds of the silhouette rules. The cleaning sizes are shares of the image, so that a
+/// scene framed alike cleans alike at any camera resolution.
 #[derive(Clone, Copy, Debug)]
 pub struct MaskOptions {
+    /// Rule 1's threshold, monitor pixels.
     pub shift_px: f32,
     /// Rule 3's threshold; `None`: [`auto_white_drop`].
     pub white_drop: Option<f32>,
-    pub min_component_px: i32,
-    pub max_hole_px: i32,
+    /// Object regions smaller than this share of the image's area are dropped.
+    pub min_component: f64,
+    /// Holes smaller than this share of the image's area are filled.
+    pub max_hole: f64,
 }
 
 impl Default for MaskOptions {
+    /// 1.6e-4 of the image: 49 pixels of a 640 × 480 image, 802 of a 2448 × 2048 one.
     fn default() -> Self {
         Self {
             shift_px: 2.0,
             white_drop: None,
-            min_component_px: 50,
-            max_hole_px: 50,
+            min_component: 1.6e-4,
+            max_hole: 1.6e-4,
         }
     }
 }
+
+/// A hole at most this share of the image's size (the square root of its area) wide on average
+/// is filled: the line where a ray through a lens-like part's centre decodes like the
+/// background (2 pixels of a 640 × 480 image).
+const THIN_HOLE_WIDTH: f64 = 0.00361;
 
 /// What the background shows at a pixel.
 #[derive(Clone, Copy, Debug)]
@@ -358,10 +369,10 @@ fn any_4_neighbour(i: usize, width: usize, height: usize, pred: impl Fn(usize) -
 }
 
 /// Drops small object regions (to 0) and marks as [`MASK_FILLED`] the holes that are small,
-/// thin (at most 2 pixels wide on average, such as the line where a ray through the lens centre
-/// decodes like the background) or, with a captured background's `evidence`, showing glass the
-/// rays cross nearly undeflected ([`shows_glass`]), in place; 8-connected regions; a background
-/// region touching the image border is no hole.
+/// thin ([`THIN_HOLE_WIDTH`]) or, with a captured background's `evidence`, showing glass the
+/// rays cross nearly undeflected ([`shows_glass`]), in place; 8-connected regions, sizes
+/// relative to the image ([`MaskOptions`]); a background region touching the image border is
+/// no hole.
 pub fn clean(
     mask: &mut [u8],
     width: i32,
@@ -369,16 +380,18 @@ pub fn clean(
     o: &MaskOptions,
     evidence: Option<&HoleEvidence>,
 ) -> Result<()> {
+    let image = width as f64 * height as f64;
+    let smaller_than = |share: f64, r: &Region| (r.area as f64) < share * image;
     let specks = Regions::of(mask, width, height, MASK_OBJECT)?;
-    let chosen: Vec<bool> = specks
-        .stats
-        .iter()
-        .map(|r| r.area < o.min_component_px)
+    let chosen: Vec<bool> = (specks.stats.iter())
+        .map(|r| smaller_than(o.min_component, r))
         .collect();
     specks.relabel(mask, &chosen, 0);
     let holes = Regions::of(mask, width, height, 0)?;
+    let thin =
+        |r: &Region| r.area as f64 <= THIN_HOLE_WIDTH * image.sqrt() * r.width.max(r.height) as f64;
     let mut chosen: Vec<bool> = (holes.stats.iter())
-        .map(|r| !r.border && (r.area < o.max_hole_px || r.area <= 2 * r.width.max(r.height)))
+        .map(|r| !r.border && (smaller_than(o.max_hole, r) || thin(r)))
         .collect();
     if let Some(e) = evidence {
         // Only the holes the sizes left open are judged by what they show.
@@ -518,36 +531,50 @@ fn shows_glass(ratios: &mut [f32], shifts: &mut [f32], evidence: &HoleEvidence) 
 mod tests {
     use super::*;
 
+    /// The same scene at two camera resolutions cleans alike. In a 640 × 480 image an object 125
+    /// pixels across with holes 6 × 6 (filled: under 49 pixels), 10 × 10 (kept), a line 2 wide
+    /// (filled: thin) and one 4 wide (kept), each 100 tall; beside it a 5 × 5 speck (dropped)
+    /// and a 10 × 10 part (kept). At 1280 × 960 every length doubles.
     #[test]
-    fn cleaning_marks_small_holes_filled_and_drops_specks() {
-        let (w, h) = (40usize, 30usize);
-        let mut mask = vec![0u8; w * h];
-        let at = |x: usize, y: usize| y * w + x;
-        for y in 5..25 {
-            for x in 5..25 {
-                mask[at(x, y)] = MASK_OBJECT;
-            }
-        }
-        // A 3×3 hole in the object and a 2-pixel speck beside it.
-        for y in 12..15 {
-            for x in 12..15 {
-                mask[at(x, y)] = 0;
-            }
-        }
-        mask[at(32, 10)] = MASK_OBJECT;
-        mask[at(33, 10)] = MASK_OBJECT;
-        let before = mask.clone();
-        clean(&mut mask, w as i32, h as i32, &MaskOptions::default(), None).unwrap();
-        for (i, (&b, &a)) in before.iter().zip(&mask).enumerate() {
-            let (x, y) = (i % w, i / w);
-            let expected = if (12..15).contains(&x) && (12..15).contains(&y) {
-                MASK_FILLED
-            } else if y == 10 && (32..34).contains(&x) {
-                0
-            } else {
-                b
+    fn cleaning_fills_small_and_thin_holes_and_drops_specks_at_any_resolution() {
+        for scale in [1usize, 2] {
+            let s = |v: usize| v * scale;
+            let (w, h) = (s(640), s(480));
+            let square = |x0: usize, y0: usize, side: usize| {
+                move |x: usize, y: usize| {
+                    (s(x0)..s(x0 + side)).contains(&x) && (s(y0)..s(y0 + side)).contains(&y)
+                }
             };
-            assert_eq!(a, expected, "pixel ({x}, {y})");
+            let line = |x0: usize, wide: usize| {
+                move |x: usize, y: usize| {
+                    (s(x0)..s(x0 + wide)).contains(&x) && (s(20)..s(120)).contains(&y)
+                }
+            };
+            let (object, small, large) =
+                (square(10, 10, 125), square(20, 20, 6), square(40, 40, 10));
+            let (thin, wide) = (line(70, 2), line(90, 4));
+            let (speck, part) = (square(145, 20, 5), square(140, 60, 10));
+            let mut mask = vec![0u8; w * h];
+            for (i, m) in mask.iter_mut().enumerate() {
+                let (x, y) = (i % w, i / w);
+                let hole = small(x, y) || large(x, y) || thin(x, y) || wide(x, y);
+                if (object(x, y) && !hole) || speck(x, y) || part(x, y) {
+                    *m = MASK_OBJECT;
+                }
+            }
+            let before = mask.clone();
+            clean(&mut mask, w as i32, h as i32, &MaskOptions::default(), None).unwrap();
+            for (i, (&b, &a)) in before.iter().zip(&mask).enumerate() {
+                let (x, y) = (i % w, i / w);
+                let expected = if small(x, y) || thin(x, y) {
+                    MASK_FILLED
+                } else if speck(x, y) {
+                    0
+                } else {
+                    b
+                };
+                assert_eq!(a, expected, "scale {scale}: pixel ({x}, {y})");
+            }
         }
     }
 

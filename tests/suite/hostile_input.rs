@@ -257,7 +257,8 @@ fn decoder_options_are_range_checked() {
         ("--min-contrast", "2"),
         ("--shift-px", "nan"),
         ("--min-modulation", "-1"),
-        ("--max-hole-px", "-3"),
+        ("--max-hole", "-3"),
+        ("--min-component", "1.5"),
     ] {
         let arg = format!("{flag}={value}");
         refused_with(&glasscan(&["decode", "nowhere", &arg]), 2, flag);
