@@ -77,7 +77,7 @@ pub fn correct_targets(
     surface: &dyn Surface,
     ior: f64,
     kernel: &BlurKernel,
-    targets: &[ViewTargets],
+    targets: &[&ViewTargets],
 ) -> Result<(Vec<ViewTargets>, CorrectionSummary), TraceError> {
     let settings = PathSettings::new(ior, MAX_REFRACTIONS);
     let views: Vec<(ViewTargets, Vec<f64>)> = targets

@@ -147,14 +147,22 @@ impl Inputs {
         let Some(kernel) = &self.blur else {
             return Ok(None);
         };
-        let chosen: Vec<usize> =
-            views.map_or_else(|| (0..self.targets.len()).collect(), <[usize]>::to_vec);
-        let picked: Vec<ViewTargets> = chosen.iter().map(|&t| self.targets[t].clone()).collect();
+        let chosen = |t: usize| views.is_none_or(|v| v.contains(&t));
+        let picked: Vec<&ViewTargets> = (self.targets.iter().enumerate())
+            .filter(|&(t, _)| chosen(t))
+            .map(|(_, view)| view)
+            .collect();
         let (corrected, summary) = correct_targets(surface, ior, kernel, &picked)?;
-        let mut targets = self.targets.clone();
-        for (t, view) in chosen.into_iter().zip(corrected) {
-            targets[t] = view;
-        }
+        // Each view copied once: the chosen ones corrected, in order, the others as they are.
+        let mut corrected = corrected.into_iter();
+        let targets = (self.targets.iter().enumerate())
+            .map(
+                |(t, view)| match chosen(t).then(|| corrected.next()).flatten() {
+                    Some(c) => c,
+                    None => view.clone(),
+                },
+            )
+            .collect();
         let inputs = Inputs {
             ior: self.ior,
             ior_start: self.ior_start,

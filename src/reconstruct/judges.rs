@@ -91,17 +91,15 @@ fn skip_warm_up_rest(checkpoint: &mut Checkpoint, start: &TriMesh, out: &Path) -
 }
 
 /// Judges the membrane term on the stage that just ended (the first after the warm-up; its mesh
-/// `judged`, started from `before`): when the term acted, runs the stage again without it; the
-/// term's run stands, and the term stays on, when it acted on at least [`MEMBRANE_MIN_SHARE`] of
-/// the vertices and its held-out outlines are within [`MEMBRANE_SILHOUETTE_RATIO`] of the other
-/// run's (without views held out, on the share alone). Returns the mesh the next stages start
-/// from, the verdict recorded in `checkpoint`.
+/// `judged`, started from `before`): when the term acted, runs the stage again without it, on
+/// the same `stage_inputs`; the term's run stands, and the term stays on, when it acted on at
+/// least [`MEMBRANE_MIN_SHARE`] of the vertices and its held-out outlines are within
+/// [`MEMBRANE_SILHOUETTE_RATIO`] of the other run's (without views held out, on the share
+/// alone). Returns the mesh the next stages start from, the verdict recorded in `checkpoint`.
 pub(super) fn judge_membrane(
-    inputs: &Inputs,
-    split: &Split,
+    stage_inputs: &mut StageInputs,
+    (split, before, judged): (&Split, &TriMesh, TriMesh),
     checkpoint: &mut Checkpoint,
-    before: &TriMesh,
-    judged: TriMesh,
     progress: &dyn Progress,
 ) -> Result<TriMesh> {
     let stage = checkpoint.stages.last().expect("a stage has just ended");
@@ -134,7 +132,7 @@ pub(super) fn judge_membrane(
         kept: false,
         ..unjudged.clone()
     });
-    let without = run_next_stage(inputs, split, checkpoint, before, progress)?;
+    let without = run_next_stage(stage_inputs, split, checkpoint, before, progress)?;
     let silhouette_without =
         (checkpoint.stages.last().and_then(|r| r.validation.as_ref())).map(|v| v.silhouette);
     let ratio = silhouette_with.unwrap_or(f64::NAN) / silhouette_without.unwrap_or(f64::NAN);
@@ -212,6 +210,8 @@ impl FirstRun {
     fn discard(self, checkpoint: &mut Checkpoint) {
         if let Some(other) = checkpoint.stages.last_mut() {
             other.seconds += self.report.seconds;
+            // The blur correction both runs used was made, and timed, for this one.
+            other.profile.blur += self.report.profile.blur;
         }
     }
 }

@@ -134,9 +134,11 @@ fn run(
         let judged =
             checkpoint.stages_done == settings.warmup_stages && settings.weight_membrane > 0.0;
         let before = judged.then(|| mesh.clone());
-        mesh = run_next_stage(inputs, &split, &mut checkpoint, &mesh, progress)?;
+        let mut stage_inputs = StageInputs::prepare(inputs, &checkpoint, &mesh)?;
+        mesh = run_next_stage(&mut stage_inputs, &split, &mut checkpoint, &mesh, progress)?;
         if let Some(before) = before {
-            mesh = judge_membrane(inputs, &split, &mut checkpoint, &before, mesh, progress)?;
+            let judged = (&split, &before, mesh);
+            mesh = judge_membrane(&mut stage_inputs, judged, &mut checkpoint, progress)?;
         }
         write_mesh(&stage_path(out, checkpoint.stages_done - 1), &mesh)?;
         if checkpoint.stages_done <= settings.warmup_stages {

@@ -6,6 +6,7 @@ use super::coverage::Coverage;
 use super::optim::{IndexStepper, Stepper, TailMean};
 use super::pull::data_edge_bounds;
 use super::validation::{validate_mesh, Split, ValidationRecord};
+use crate::loss::blur::CorrectionSummary;
 use crate::loss::Drops;
 use crate::mesh::validate::{validate, Defect};
 use crate::mesh::TriMesh;
@@ -81,7 +82,7 @@ fn index_free(inputs: &Inputs, settings: &Settings, s: usize) -> Option<(f64, f6
 /// index with the shape: [`index_free`]) and measures the result on those it holds out, at the
 /// stage's index; records it in `checkpoint`.
 pub(super) fn run_next_stage(
-    inputs: &Inputs,
+    stage_inputs: &mut StageInputs,
     split: &Split,
     checkpoint: &mut Checkpoint,
     mesh: &TriMesh,
@@ -100,13 +101,9 @@ pub(super) fn run_next_stage(
             checkpoint.thin_part_mm.unwrap_or(f64::NAN)
         ));
     }
+    let seconds_blur = stage_inputs.take_seconds();
+    let (inputs, blur) = (stage_inputs.inputs(), stage_inputs.blur());
     let ior = checkpoint.index(inputs);
-    let deblurred = deblur_for_stage(inputs, checkpoint, (mesh, ior), s)?;
-    let seconds_blur = t0.elapsed().as_secs_f64();
-    let (inputs, blur) = match &deblurred {
-        Some((corrected, summary)) => (corrected, Some(*summary)),
-        None => (inputs, None),
-    };
     let free = index_free(inputs, &checkpoint.settings, s);
     let mut opts = remesh_options(&phase, edge_mm);
     if opts.adaptive.is_some() {
@@ -114,7 +111,7 @@ pub(super) fn run_next_stage(
             .with_context(|| format!("stage {s}: measuring where the data pulls"))?;
     }
     let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
-    let seconds_remesh = t0.elapsed().as_secs_f64() - seconds_blur;
+    let seconds_remesh = t0.elapsed().as_secs_f64();
     let stages = checkpoint.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
     let (report, mean) = run_stage(
@@ -132,7 +129,7 @@ pub(super) fn run_next_stage(
         settle_stage((inputs, split, ior), &mut mesh, mean, &checkpoint.settings)?;
     let report = StageReport {
         ior: Some(ior),
-        seconds: t0.elapsed().as_secs_f64(),
+        seconds: seconds_blur + t0.elapsed().as_secs_f64(),
         degenerate_faces: check_stage_mesh(&mesh, s)?,
         validation,
         averaged,
@@ -151,26 +148,58 @@ pub(super) fn run_next_stage(
     Ok(mesh)
 }
 
-/// The inputs of stage `s` of a run with a blurred camera: after the warm-up, the decoded points
-/// corrected on the stage's start `mesh` at index `ior`, and how far they moved; `None` in the
-/// warm-up (DRT's steps carve the hull, whose rims are far from the object's), without a blur,
-/// and with `blur_correction` off (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur).
-/// The stage's held-out fit compares its mesh with these points, so stages' fits compare each
-/// stage with its own correction.
-fn deblur_for_stage(
-    inputs: &Inputs,
-    checkpoint: &Checkpoint,
-    (mesh, ior): (&TriMesh, f64),
-    s: usize,
-) -> Result<Option<(Inputs, crate::loss::blur::CorrectionSummary)>> {
-    let settings = &checkpoint.settings;
-    if !settings.blur_correction || s < settings.warmup_stages {
-        return Ok(None);
+/// What a stage runs on: the run's inputs or, after the warm-up of a run with `blur_correction`
+/// and a blur to correct for, those inputs with the decoded points corrected on the stage's
+/// start mesh at the stage's index (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur;
+/// the warm-up's DRT steps carve the hull, whose rims are far from the object's). The stage's
+/// held-out fit compares its mesh with these points, so stages' fits compare each stage with
+/// its own correction. Made once per stage: the membrane judge's second run of the stage reuses
+/// it.
+pub(super) struct StageInputs<'a> {
+    run: &'a Inputs,
+    corrected: Option<(Inputs, CorrectionSummary)>,
+    /// Seconds the correction took, until a run of the stage counts them.
+    unspent_seconds: f64,
+}
+
+impl<'a> StageInputs<'a> {
+    /// The inputs of the next stage of `checkpoint`'s run, which starts from `mesh`.
+    pub(super) fn prepare(
+        inputs: &'a Inputs,
+        checkpoint: &Checkpoint,
+        mesh: &TriMesh,
+    ) -> Result<Self> {
+        let t0 = Instant::now();
+        let (settings, s) = (&checkpoint.settings, checkpoint.stages_done);
+        let corrected = if settings.blur_correction && s >= settings.warmup_stages {
+            let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
+            inputs
+                .deblurred(&surface, checkpoint.index(inputs), None)
+                .with_context(|| format!("stage {s}: correcting the decoded points for the blur"))?
+        } else {
+            None
+        };
+        Ok(Self {
+            run: inputs,
+            corrected,
+            unspent_seconds: t0.elapsed().as_secs_f64(),
+        })
     }
-    let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
-    inputs
-        .deblurred(&surface, ior, None)
-        .with_context(|| format!("stage {s}: correcting the decoded points for the blur"))
+
+    /// The inputs, corrected or not.
+    fn inputs(&self) -> &Inputs {
+        self.corrected.as_ref().map_or(self.run, |(c, _)| c)
+    }
+
+    /// How far the correction moved the decoded points (`None`: no correction).
+    fn blur(&self) -> Option<CorrectionSummary> {
+        self.corrected.as_ref().map(|(_, summary)| *summary)
+    }
+
+    /// The correction's seconds for the first run of the stage, 0 for a second one.
+    fn take_seconds(&mut self) -> f64 {
+        std::mem::take(&mut self.unspent_seconds)
+    }
 }
 
 /// The stage's mesh: its last iterate (in `mesh`) or the mean of its last iterates, whichever

@@ -74,7 +74,8 @@ fn a_blurred_cameras_decoded_points_corrected_for_the_blur_meet_the_centre_rays(
 
     let kernel = BlurKernel::gaussian(1.0).unwrap();
     let surface = MeshSurface::new(&shape, NormalModel::Vertex).unwrap();
-    let (corrected, summary) = correct_targets(&surface, IOR, &kernel, &targets).unwrap();
+    let picked: Vec<&_> = targets.iter().collect();
+    let (corrected, summary) = correct_targets(&surface, IOR, &kernel, &picked).unwrap();
     let before = centre_ray_misses_mm(&shape, &targets);
     let after = centre_ray_misses_mm(&shape, &corrected);
     let (b, a) = (mean(&before), mean(&after));
