@@ -463,15 +463,15 @@ fn refraction_carries_the_shape_beyond_the_hull() {
         std::fs::read(killed.join("result.ply")).unwrap(),
         "resumed result differs from the uninterrupted one"
     );
-    assert_blur_correction_runs_once_a_stage(dir.path(), &scan, hull);
+    assert_every_blur_corrected_stage_reports_its_correction(dir.path(), &scan, hull);
 }
 
 /// A run with `blur_correction` on `scan` (the pebble's, a blur of 0.5 px written into its
-/// scan.toml, no warm-up): every stage runs on decoded points corrected on its start mesh, and
-/// the first stage, which the membrane judge runs twice, reports the correction's time although
-/// its second run, which stands, reused the first's correction. Still nearer the truth than the
-/// hull (`hull`, mm).
-fn assert_blur_correction_runs_once_a_stage(dir: &Path, scan: &Path, hull: f64) {
+/// scan.toml, no warm-up): every stage reports the points it corrected and the correction's
+/// time — the first stage too, which the membrane judge runs twice and whose second run, which
+/// stands, reuses the first run's correction and is handed its time. Still nearer the truth
+/// than the hull (`hull`, mm).
+fn assert_every_blur_corrected_stage_reports_its_correction(dir: &Path, scan: &Path, hull: f64) {
     let toml = scan.join("scan.toml");
     let text = std::fs::read_to_string(&toml).unwrap();
     std::fs::write(&toml, format!("blur_px = 0.5\n{text}")).unwrap();
