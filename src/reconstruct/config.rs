@@ -84,6 +84,7 @@ pub struct Settings {
     pub start_edge: f64,
     pub final_edge: f64,
     pub iterations: usize,
+    /// Split–collapse–flip–relax rounds of each stage's remesh ([`crate::remesh`]).
     pub remesh_iterations: usize,
     pub optimizer: Optimizer,
     /// Term weights (each term is a weighted mean over its rays or edges).
@@ -384,7 +385,6 @@ impl Settings {
                 iterations: 300,
                 refraction_views: 4,
                 silhouette_views: 8,
-                remesh_iterations: 10,
                 // Rays a camera pixel's width apart at the object about as far as its finest
                 // edge: 2×2 where a pixel spans 1.5 finest edges or more
                 // (docs/decisions.md#accurate-chooses-its-footprint-from-the-camera-pixel-at-the-object).
