@@ -63,8 +63,8 @@ pub struct CalibratedBenchArgs {
 #[derive(Args, Debug)]
 pub struct ReconstructBenchArgs {
     /// Folder with the {object}_scan.ply meshes (not needed for the built-in objects).
-    #[arg(long, default_value = "")]
-    pub meshes: PathBuf,
+    #[arg(long)]
+    pub meshes: Option<PathBuf>,
     /// Scans, runs, results.json, results.md and time_vs_accuracy.png go here; a rerun skips
     /// the runs results.json already holds.
     #[arg(long, default_value = "target/bench-reconstruct")]
@@ -237,9 +237,10 @@ fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
 
 fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
     use glasscan::bench::reconstruct::{run_bench, BenchOptions, Rig};
-    guard_outputs(Some(&a.work), None, &[&a.meshes])?;
+    let meshes = a.meshes.clone().unwrap_or_default();
+    guard_outputs(Some(&a.work), None, &[&meshes])?;
     let o = BenchOptions {
-        meshes: a.meshes.clone(),
+        meshes,
         work: a.work.clone(),
         objects: a.objects.clone(),
         presets: a.presets.clone(),

@@ -257,6 +257,26 @@ fn bench_trace_runs_and_prints_ratios() {
     }
 }
 
+/// The built-in objects need no `--meshes`; a mesh that is neither built in nor found is named
+/// before any work.
+#[test]
+fn bench_reconstruct_takes_built_in_objects_without_a_mesh_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path().join("work");
+    let o = glasscan(&[
+        "bench",
+        "reconstruct",
+        "--objects",
+        "block,prism,nosuch",
+        "--work",
+        work.to_str().unwrap(),
+    ]);
+    let err = stderr(&o);
+    assert!(!o.status.success());
+    assert!(err.contains("nosuch_scan.ply: no such mesh"), "{err}");
+    assert!(!work.join("scans").exists(), "work started: {err}");
+}
+
 #[test]
 fn version_names_the_native_libraries() {
     let o = glasscan(&["--version"]);
