@@ -105,6 +105,61 @@ pub fn calibrate_turntable(
         );
     }
     let object = board.object_points();
+    let Observed { obs, used, skipped } = observe(images, angles_deg, board, camera)?;
+    if obs.len() < 3 {
+        bail!(
+            "the board was found in {} of {} images; the axis needs at least 3",
+            obs.len(),
+            images.len()
+        );
+    }
+    let poses: Vec<Isometry3<f64>> = obs.iter().map(|o| o.pose).collect();
+    let thetas: Vec<f64> = obs.iter().map(|o| o.theta).collect();
+    let (d0, c0) = axis_of_motions(&poses, Some(&thetas))?;
+    let base0 = about_axis(&d0, &c0, -obs[0].theta) * obs[0].pose;
+    let fit = Fit {
+        obs: &obs,
+        object: &object,
+        camera,
+        d0,
+        c0,
+        base0,
+    };
+    let x = fit.solve()?;
+    let (d, c, base) = fit.params(&x);
+    // The axis point nearest the board's origin at angle 0.
+    let o = base.translation.vector;
+    let c = c + d.into_inner() * d.dot(&(o - c.coords));
+    let residuals = fit.residuals(&x);
+    let views = fit.view_reports(&x, used, &residuals);
+    Ok(TurntableCalibration {
+        axis_point: c,
+        axis_dir: d,
+        rms_px: (residuals.norm_squared() / (obs.len() * object.len()) as f64).sqrt(),
+        views,
+        skipped,
+        square_px: crate::util::median(obs.iter().map(|o| o.square_px).collect()),
+    })
+}
+
+/// The board as [`observe`] found it in a turntable's images.
+struct Observed {
+    obs: Vec<Observation>,
+    /// The images the board was found in, with their given angles (degrees), in `obs`' order.
+    used: Vec<(PathBuf, f64)>,
+    /// The images it was not found in.
+    skipped: Vec<PathBuf>,
+}
+
+/// The board in each of `images` (taken at `angles_deg`): its corners and its pose by PnP with
+/// the calibrated `camera`.
+fn observe(
+    images: &[BoardImage],
+    angles_deg: &[f64],
+    board: &Board,
+    camera: &Camera,
+) -> Result<Observed> {
+    let object = board.object_points();
     let object_cv: Vector<Point3d> = object.iter().map(|p| Point3d::new(p.x, p.y, p.z)).collect();
     let (k, dist) = camera_mats(camera)?;
     let (mut obs, mut used, mut skipped) = (Vec::new(), Vec::new(), Vec::new());
@@ -133,58 +188,7 @@ pub fn calibrate_turntable(
         });
         used.push((im.path.clone(), a));
     }
-    if obs.len() < 3 {
-        bail!(
-            "the board was found in {} of {} images; the axis needs at least 3",
-            obs.len(),
-            images.len()
-        );
-    }
-    let poses: Vec<Isometry3<f64>> = obs.iter().map(|o| o.pose).collect();
-    let thetas: Vec<f64> = obs.iter().map(|o| o.theta).collect();
-    let (d0, c0) = axis_of_motions(&poses, Some(&thetas))?;
-    let base0 = about_axis(&d0, &c0, -obs[0].theta) * obs[0].pose;
-    let fit = Fit {
-        obs: &obs,
-        object: &object,
-        camera,
-        d0,
-        c0,
-        base0,
-    };
-    let x = fit.solve()?;
-    let (d, c, base) = fit.params(&x);
-    // The axis point nearest the board's origin at angle 0.
-    let o = base.translation.vector;
-    let c = c + d.into_inner() * d.dot(&(o - c.coords));
-    let residuals = fit.residuals(&x);
-    let per_image = 2 * object.len();
-    let views = used
-        .into_iter()
-        .zip(&obs)
-        .zip(residuals.as_slice().chunks(per_image))
-        .map(|(((path, angle_deg), ob), r)| {
-            let rel = ob.pose.rotation * base.rotation.inverse();
-            let v = rel.scaled_axis();
-            let from_pnp = v.norm() * v.dot(&d).signum();
-            let measured = fit.image_angle(&x, ob, from_pnp);
-            let diff = (measured.to_degrees() - angle_deg + 180.0).rem_euclid(360.0) - 180.0;
-            TurntableView {
-                path,
-                angle_deg,
-                angle_residual_deg: diff,
-                rms_px: (r.iter().map(|e| e * e).sum::<f64>() / object.len() as f64).sqrt(),
-            }
-        })
-        .collect();
-    Ok(TurntableCalibration {
-        axis_point: c,
-        axis_dir: d,
-        rms_px: (residuals.norm_squared() / (obs.len() * object.len()) as f64).sqrt(),
-        views,
-        skipped,
-        square_px: crate::util::median(obs.iter().map(|o| o.square_px).collect()),
-    })
+    Ok(Observed { obs, used, skipped })
 }
 
 /// The rotation axis of rigid motions (`poses[k]` = the rotation about the axis by
@@ -244,6 +248,37 @@ struct Fit<'a> {
 
 impl Fit<'_> {
     const N: usize = 10;
+
+    /// Per image `used` (its path and given angle, in the observations' order), the angle the
+    /// fitted parameters `x` put it at against the given one, and its reprojection RMS from
+    /// the fit's `residuals` (pixels).
+    fn view_reports(
+        &self,
+        x: &DVector<f64>,
+        used: Vec<(PathBuf, f64)>,
+        residuals: &DVector<f64>,
+    ) -> Vec<TurntableView> {
+        let (d, _, base) = self.params(x);
+        let per_image = 2 * self.object.len();
+        used.into_iter()
+            .zip(self.obs)
+            .zip(residuals.as_slice().chunks(per_image))
+            .map(|(((path, angle_deg), ob), r)| {
+                let rel = ob.pose.rotation * base.rotation.inverse();
+                let v = rel.scaled_axis();
+                let from_pnp = v.norm() * v.dot(&d).signum();
+                let measured = self.image_angle(x, ob, from_pnp);
+                let diff = (measured.to_degrees() - angle_deg + 180.0).rem_euclid(360.0) - 180.0;
+                let squares = r.iter().map(|e| e * e).sum::<f64>();
+                TurntableView {
+                    path,
+                    angle_deg,
+                    angle_residual_deg: diff,
+                    rms_px: (squares / self.object.len() as f64).sqrt(),
+                }
+            })
+            .collect()
+    }
 
     fn basis(&self) -> (Vector3<f64>, Vector3<f64>) {
         let d = self.d0.into_inner();

@@ -316,6 +316,19 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         bar.set_position(i as u64)
     })?;
     bar.finish_and_clear();
+    print_gradient(a, &s, &r)?;
+    if let Some(path) = &a.json {
+        super::write_json(path, &serde_json::to_value(&r)?)?;
+    }
+    Ok(())
+}
+
+/// `bench gradient`'s figures: what was traced, what was dropped, the two rates and their ratio.
+fn print_gradient(
+    a: &GradientArgs,
+    s: &glasscan::loss::refraction::RefractionSettings,
+    r: &glasscan::bench::gradient::GradientBenchReport,
+) -> Result<()> {
     outln!(
         "{} threads · {} faces · {} views · {:?} normals · {:?} residual · paths with ≤ {} refractions",
         r.threads, r.faces, r.views, s.normals, s.form, s.max_refractions
@@ -355,9 +368,6 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         r.embree_queries_per_s / 1e6
     );
     outln!("ratio loss+gradient / Embree alone: {:.2}", r.ratio);
-    if let Some(path) = &a.json {
-        super::write_json(path, &serde_json::to_value(&r)?)?;
-    }
     Ok(())
 }
 

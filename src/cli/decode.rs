@@ -12,7 +12,7 @@ use glasscan::decode::blur::Unmeasured;
 use glasscan::decode::compare::{compare_view, Comparison};
 use glasscan::decode::mask::MaskOptions;
 use glasscan::decode::{decode_scan, DecodeOptions};
-use glasscan::scan::decoded::MeasuredBlur;
+use glasscan::scan::decoded::{MeasuredBlur, ViewSummary};
 
 #[derive(Args, Debug)]
 pub struct DecodeArgs {
@@ -64,20 +64,7 @@ pub struct DecodeArgs {
 pub fn run(a: &DecodeArgs) -> Result<()> {
     let scan = super::common::open_scan(&a.scan)?;
     let views = parse_views(a.views.as_deref(), scan.config.views.angles_deg.len())?;
-    let o = DecodeOptions {
-        white_threshold: a.white_threshold,
-        black_threshold: a.black_threshold,
-        min_contrast: a.min_contrast,
-        use_phase: !a.no_phase,
-        min_modulation: a.min_modulation,
-        mask: MaskOptions {
-            shift_px: a.shift_px,
-            white_drop: a.white_drop.0,
-            min_component: a.min_component,
-            max_hole: a.max_hole,
-        },
-        bit_depth: a.bit_depth,
-    };
+    let o = options(a);
     let bar = bar("decode", views.len());
     let t0 = std::time::Instant::now();
     let outcome = decode_scan(&scan, &views, &o, |s| {
@@ -103,64 +90,87 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
     );
     print_blur(&scan, outcome.blur)?;
     if a.compare {
-        let fixed = glasscan::util::fixed::FixedPoint::for_screen(
-            scan.screen.width_px,
-            scan.screen.height_px,
-        );
-        let rows: Vec<Comparison> = summaries
-            .iter()
-            .filter(|s| s.warning.is_none())
-            .map(|s| compare_view(&scan.dir, s.view, &fixed))
-            .collect::<Result<_>>()?;
+        print_comparison(&scan, &summaries)?;
+    }
+    Ok(())
+}
+
+/// The decoder's options from the command line's.
+fn options(a: &DecodeArgs) -> DecodeOptions {
+    DecodeOptions {
+        white_threshold: a.white_threshold,
+        black_threshold: a.black_threshold,
+        min_contrast: a.min_contrast,
+        use_phase: !a.no_phase,
+        min_modulation: a.min_modulation,
+        mask: MaskOptions {
+            shift_px: a.shift_px,
+            white_drop: a.white_drop.0,
+            min_component: a.min_component,
+            max_hole: a.max_hole,
+        },
+        bit_depth: a.bit_depth,
+    }
+}
+
+/// `--compare-ground-truth`: each decoded view (those without a warning) against the
+/// simulator's truth, a row each, then the whole scan.
+fn print_comparison(scan: &glasscan::scan::Scan, summaries: &[ViewSummary]) -> Result<()> {
+    let fixed =
+        glasscan::util::fixed::FixedPoint::for_screen(scan.screen.width_px, scan.screen.height_px);
+    let rows: Vec<Comparison> = summaries
+        .iter()
+        .filter(|s| s.warning.is_none())
+        .map(|s| compare_view(&scan.dir, s.view, &fixed))
+        .collect::<Result<_>>()?;
+    outln!(
+        "{:>5} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>12} {:>9} {:>11}",
+        "view",
+        "mask IoU",
+        "extra",
+        "missing",
+        "edge px",
+        "valid",
+        "decoded %",
+        "med err foot",
+        "med err ctr",
+        "≤1 px %",
+        "≤ uncert. %"
+    );
+    for c in &rows {
         outln!(
-            "{:>5} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>12} {:>9} {:>11}",
-            "view",
-            "mask IoU",
-            "extra",
-            "missing",
-            "edge px",
-            "valid",
-            "decoded %",
-            "med err foot",
-            "med err ctr",
-            "≤1 px %",
-            "≤ uncert. %"
-        );
-        for c in &rows {
-            outln!(
-                "{:>5} {:>8.4} {:>9} {:>9} {:>9.3} {:>9} {:>9.1} {:>12.2} {:>12.2} {:>9.1} {:>11.1}",
-                c.view,
-                c.mask_iou,
-                c.mask_extra,
-                c.mask_missing,
-                c.edge_offset_px(),
-                c.valid,
-                100.0 * c.decoded_share,
-                c.median_error_footprint_px,
-                c.median_error_centre_px,
-                100.0 * c.within_1px_footprint,
-                100.0 * c.within_uncertainty_footprint
-            );
-        }
-        let n: usize = rows.iter().map(|c| c.compared).sum();
-        let valid: usize = rows.iter().map(|c| c.valid).sum();
-        let direct_offset = Comparison::overall_direct_offset_px(&rows);
-        let direct: usize = rows.iter().map(|c| c.direct_compared).sum();
-        let w = |f: fn(&Comparison) -> f64| {
-            rows.iter().map(|c| f(c) * c.compared as f64).sum::<f64>() / n.max(1) as f64
-        };
-        outln!(
-            "overall: mean mask IoU {:.4}; decoded outline {:+.3} px from the true one (> 0: outside); the monitor seen directly decoded at ({:+.3}, {:+.3}) camera px from the truth (x, y; {direct} px); {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
-            rows.iter().map(|c| c.mask_iou).sum::<f64>() / rows.len().max(1) as f64,
-            Comparison::overall_edge_offset_px(&rows),
-            direct_offset[0],
-            direct_offset[1],
-            100.0 * n as f64 / valid.max(1) as f64,
-            100.0 * w(|c| c.within_1px_footprint),
-            100.0 * w(|c| c.within_uncertainty_footprint),
-            glasscan::util::median(rows.iter().map(|c| c.median_error_footprint_px).collect())
+            "{:>5} {:>8.4} {:>9} {:>9} {:>9.3} {:>9} {:>9.1} {:>12.2} {:>12.2} {:>9.1} {:>11.1}",
+            c.view,
+            c.mask_iou,
+            c.mask_extra,
+            c.mask_missing,
+            c.edge_offset_px(),
+            c.valid,
+            100.0 * c.decoded_share,
+            c.median_error_footprint_px,
+            c.median_error_centre_px,
+            100.0 * c.within_1px_footprint,
+            100.0 * c.within_uncertainty_footprint
         );
     }
+    let n: usize = rows.iter().map(|c| c.compared).sum();
+    let valid: usize = rows.iter().map(|c| c.valid).sum();
+    let direct_offset = Comparison::overall_direct_offset_px(&rows);
+    let direct: usize = rows.iter().map(|c| c.direct_compared).sum();
+    let w = |f: fn(&Comparison) -> f64| {
+        rows.iter().map(|c| f(c) * c.compared as f64).sum::<f64>() / n.max(1) as f64
+    };
+    outln!(
+        "overall: mean mask IoU {:.4}; decoded outline {:+.3} px from the true one (> 0: outside); the monitor seen directly decoded at ({:+.3}, {:+.3}) camera px from the truth (x, y; {direct} px); {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
+        rows.iter().map(|c| c.mask_iou).sum::<f64>() / rows.len().max(1) as f64,
+        Comparison::overall_edge_offset_px(&rows),
+        direct_offset[0],
+        direct_offset[1],
+        100.0 * n as f64 / valid.max(1) as f64,
+        100.0 * w(|c| c.within_1px_footprint),
+        100.0 * w(|c| c.within_uncertainty_footprint),
+        glasscan::util::median(rows.iter().map(|c| c.median_error_footprint_px).collect())
+    );
     Ok(())
 }
 

@@ -11,6 +11,7 @@ use glasscan::eval::error_map::{
 };
 use glasscan::eval::{evaluate_on, EvalOptions, EvalReport};
 use glasscan::mesh::io::{read_mesh, read_mesh_with_quality};
+use glasscan::mesh::TriMesh;
 use glasscan::trace::{BuildMode, Device, Scene};
 use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
@@ -55,20 +56,7 @@ pub struct EvalArgs {
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
-    let inputs = [args.result.as_path(), args.reference.as_path()];
-    if let Some(p) = &args.json {
-        ensure_extension(p, "--json", &["json"])?;
-        ensure_output_spares_inputs(p, "--json", &inputs)?;
-    }
-    for (p, flag) in [
-        (&args.error_map, "--error-map"),
-        (&args.confidence_map, "--confidence-map"),
-    ] {
-        if let Some(p) = p {
-            ensure_extension(p, flag, &["png"])?;
-            ensure_output_spares_inputs(p, flag, &inputs)?;
-        }
-    }
+    let error_max_mm = check_outputs(args)?;
     let (result, quality) = read_mesh_with_quality(&args.result)?;
     if args.confidence_map.is_some() && quality.is_none() {
         bail!(
@@ -100,48 +88,74 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     out!("{}", table(&report, args.seed));
     let mut json = report.to_json();
     if let Some(quality) = &quality {
-        let by = error_by_confidence(&result, quality, &ref_scene)?;
-        let [q1, q2, q3, q4] = by.quartiles_mm;
-        outln!(
-            "by confidence    {q1:.4} / {q2:.4} / {q3:.4} / {q4:.4} mm  (mean vertex error in each quarter of the area, least to most confident by the result's quality; {:.2}×)",
-            by.least_over_most
-        );
-        json["error_by_confidence"] = serde_json::to_value(by)?;
-        if let Some(path) = &args.confidence_map {
-            write_support_map(
-                path,
-                (&result, &res_scene),
-                quality,
-                confidence_legend(quality),
-            )?;
-            outln!("confidence map   {}", path.display());
-        }
+        json["error_by_confidence"] =
+            by_confidence(args, (&result, &res_scene), &ref_scene, quality)?;
     }
     if let Some(path) = &args.json {
         super::write_json(path, &json)?;
     }
     if let Some(path) = &args.error_map {
-        let max_mm = args
-            .error_max_mm
-            .unwrap_or_else(|| args.thresholds_mm.iter().copied().fold(0.0, f64::max));
-        if !(max_mm.is_finite() && max_mm > 0.0) {
-            bail!("--error-max-mm {max_mm}: it must be a positive number of mm");
-        }
-        write_error_map(
-            path,
-            &result,
-            &res_scene,
-            &ref_scene,
-            if args.error_map_signed {
-                ErrorScale::Signed(&reference)
-            } else {
-                ErrorScale::Distance
-            },
-            max_mm,
-        )?;
+        let scale = if args.error_map_signed {
+            ErrorScale::Signed(&reference)
+        } else {
+            ErrorScale::Distance
+        };
+        write_error_map(path, &result, &res_scene, &ref_scene, scale, error_max_mm)?;
         outln!("error map        {}", path.display());
     }
     Ok(())
+}
+
+/// Checks the output paths (their extensions; none overwrites an input) and the error map's
+/// scale before any work; returns that scale (mm).
+fn check_outputs(args: &EvalArgs) -> Result<f64> {
+    let inputs = [args.result.as_path(), args.reference.as_path()];
+    if let Some(p) = &args.json {
+        ensure_extension(p, "--json", &["json"])?;
+        ensure_output_spares_inputs(p, "--json", &inputs)?;
+    }
+    for (p, flag) in [
+        (&args.error_map, "--error-map"),
+        (&args.confidence_map, "--confidence-map"),
+    ] {
+        if let Some(p) = p {
+            ensure_extension(p, flag, &["png"])?;
+            ensure_output_spares_inputs(p, flag, &inputs)?;
+        }
+    }
+    let max_mm = args
+        .error_max_mm
+        .unwrap_or_else(|| args.thresholds_mm.iter().copied().fold(0.0, f64::max));
+    if args.error_map.is_some() && !(max_mm.is_finite() && max_mm > 0.0) {
+        bail!("--error-max-mm {max_mm}: it must be a positive number of mm");
+    }
+    Ok(max_mm)
+}
+
+/// The result's error by quarters of its area ordered by its confidence (`quality`, per
+/// vertex), printed and as JSON, and the confidence map if asked for.
+fn by_confidence(
+    args: &EvalArgs,
+    (result, res_scene): (&TriMesh, &Scene),
+    ref_scene: &Scene,
+    quality: &[f64],
+) -> Result<serde_json::Value> {
+    let by = error_by_confidence(result, quality, ref_scene)?;
+    let [q1, q2, q3, q4] = by.quartiles_mm;
+    outln!(
+        "by confidence    {q1:.4} / {q2:.4} / {q3:.4} / {q4:.4} mm  (mean vertex error in each quarter of the area, least to most confident by the result's quality; {:.2}×)",
+        by.least_over_most
+    );
+    if let Some(path) = &args.confidence_map {
+        write_support_map(
+            path,
+            (result, res_scene),
+            quality,
+            confidence_legend(quality),
+        )?;
+        outln!("confidence map   {}", path.display());
+    }
+    Ok(serde_json::to_value(by)?)
 }
 
 /// The metrics as the table `eval` (and the demo) print.

@@ -11,7 +11,7 @@ use glasscan::mesh::io::read_mesh;
 use glasscan::patterns::PhaseShift;
 use glasscan::simulate::calibration::{CalibrationBoards, MAX_CAMERA_IMAGES};
 use glasscan::simulate::Transport;
-use glasscan::simulate::{simulate, SimulateOptions};
+use glasscan::simulate::{simulate, SimulateOptions, SimulateReport};
 use glasscan::simulate::{MAX_SPP, MAX_VIEWS};
 use glasscan::trace::path::NormalModel;
 use glasscan::util::paths::ensure_output_spares_inputs;
@@ -114,47 +114,58 @@ pub struct SimulateArgs {
 pub fn run(a: &SimulateArgs) -> Result<()> {
     ensure_output_spares_inputs(&a.out, "--out", &[&a.mesh])?;
     let mesh = read_mesh(&a.mesh)?;
-    let o =
-        SimulateOptions {
-            views: a.views as usize,
-            width: a.size.0,
-            height: a.size.1,
-            ior: a.ior,
-            screen_width: a.screen.0,
-            screen_height: a.screen.1,
-            pitch_mm: a.pitch_mm,
-            spp: a.spp,
-            noise: a.noise,
-            blur_px: a.blur_px,
-            max_refractions: a.max_refractions,
-            decoded_only: a.decoded_only,
-            seed: a.seed,
-            camera_distance_mm: a.camera_distance_mm,
-            screen_distance_mm: a.screen_distance_mm,
-            fill: a.fill,
-            normals: a.normals,
-            fresnel: !a.no_fresnel,
-            transport: a.transport,
-            phase_shift: a.phase_steps.map(|steps| PhaseShift {
-                steps,
-                period_px: a.period_px,
-            }),
-            distortion: a.distortion.clone().try_into().map_err(|_| {
-                anyhow::anyhow!("--distortion takes 5 coefficients: k1,k2,p1,p2,k3")
-            })?,
-            calibration_images: a.calibration_images,
-            boards: CalibrationBoards {
-                cols: a.board.0,
-                rows: a.board.1,
-                camera_square_mm: a.square_mm,
-                turntable_square_mm: a.turntable_square_mm,
-                camera_images: a.board_images as usize,
-            },
-            force: a.force,
-        };
+    let o = options(a)?;
     let bar = bar("simulate", a.views as usize);
     let r = simulate(&mesh, &a.out, &o, |_| bar.inc(1))?;
     bar.finish_and_clear();
+    print_report(a, &r)
+}
+
+/// The simulator's options from the command line's.
+fn options(a: &SimulateArgs) -> Result<SimulateOptions> {
+    Ok(SimulateOptions {
+        views: a.views as usize,
+        width: a.size.0,
+        height: a.size.1,
+        ior: a.ior,
+        screen_width: a.screen.0,
+        screen_height: a.screen.1,
+        pitch_mm: a.pitch_mm,
+        spp: a.spp,
+        noise: a.noise,
+        blur_px: a.blur_px,
+        max_refractions: a.max_refractions,
+        decoded_only: a.decoded_only,
+        seed: a.seed,
+        camera_distance_mm: a.camera_distance_mm,
+        screen_distance_mm: a.screen_distance_mm,
+        fill: a.fill,
+        normals: a.normals,
+        fresnel: !a.no_fresnel,
+        transport: a.transport,
+        phase_shift: a.phase_steps.map(|steps| PhaseShift {
+            steps,
+            period_px: a.period_px,
+        }),
+        distortion: a
+            .distortion
+            .clone()
+            .try_into()
+            .map_err(|_| anyhow::anyhow!("--distortion takes 5 coefficients: k1,k2,p1,p2,k3"))?,
+        calibration_images: a.calibration_images,
+        boards: CalibrationBoards {
+            cols: a.board.0,
+            rows: a.board.1,
+            camera_square_mm: a.square_mm,
+            turntable_square_mm: a.turntable_square_mm,
+            camera_images: a.board_images as usize,
+        },
+        force: a.force,
+    })
+}
+
+/// The run's summary: where the scan went, and what the camera rays met.
+fn print_report(a: &SimulateArgs, r: &SimulateReport) -> Result<()> {
     outln!(
         "simulated {} views of {} into {} in {:.1} s",
         r.views,

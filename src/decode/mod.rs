@@ -428,36 +428,79 @@ struct ViewWriter<'a> {
 impl ViewWriter<'_> {
     /// Masks view `k` and writes its decoded form and preview.
     fn write(&self, k: usize, cap: &DecodedCapture) -> Result<ViewSummary> {
-        let ViewWriter {
-            out,
-            background: bg,
-            background_capture,
-            code,
-            ior,
-            o,
-            fixed,
-        } = *self;
-        let share = match (&cap.fine, background_capture.and_then(|b| b.fine.as_ref())) {
+        let background = self.background_capture.and_then(|b| b.fine.as_ref());
+        let share = match (&cap.fine, background) {
             (Some(view), Some(background)) => Some(background_share(view, background)),
             _ => None,
         };
-        let (w, h) = (cap.width as i32, cap.height as i32);
+        let (mask, white_drop) = self.mask(cap, share.as_deref())?;
+        let images = ViewImages::of(cap, &mask, self.code, self.fixed);
+        let contrasts = object_contrasts(cap, &mask, &images.monitor);
+        let coverage = share
+            .as_deref()
+            .map(|s| outline_coverage(&mask, s, cap.width));
+        let size = (cap.width as u32, cap.height as u32);
+        let extras = form::ViewExtras {
+            contrasts: Some(&contrasts),
+            coverage: coverage.as_deref(),
+        };
+        form::write_view(self.out, k, size, &mask, &images.monitor, extras)?;
+        let preview = self.out.join("preview").join(format!("view_{k:03}.png"));
+        write_pixels(&preview, size.0, size.1, &images.preview)?;
+        let edge = pixels_at_monitor_edge(&mask, self.background, cap.width);
+        let (object, decoded) = (images.object, images.decoded);
+        Ok(ViewSummary {
+            view: k,
+            object_pixels: object,
+            decoded_share: decoded as f64 / object.max(1) as f64,
+            complete_share: images.complete as f64 / decoded.max(1) as f64,
+            white_drop: white_drop.map(f64::from),
+            monitor_edge_px: edge,
+            warning: view_warning(object, edge),
+        })
+    }
+
+    /// The view's cleaned mask, and the white drop its rule used if any (`share`: each
+    /// pixel's share of the background's fine code, where it was captured).
+    fn mask(&self, cap: &DecodedCapture, share: Option<&[f32]>) -> Result<(Vec<u8>, Option<f32>)> {
         let view = ViewPixels {
             width: cap.width,
             decoded: &cap.pixels,
             lit: &cap.lit,
             white: &cap.white,
-            background_share: share.as_deref(),
+            background_share: share,
         };
         let RawMask {
             mut mask,
             white_drop,
             holes,
-        } = raw_mask(&view, bg, ior, &o.mask);
-        clean(&mut mask, w, h, &o.mask, holes.as_ref())?;
-        let mut monitor = Vec::with_capacity(mask.len());
-        let mut preview = Vec::with_capacity(mask.len());
-        let (mut object, mut decoded, mut complete) = (0usize, 0usize, 0usize);
+        } = raw_mask(&view, self.background, self.ior, &self.o.mask);
+        let (w, h) = (cap.width as i32, cap.height as i32);
+        clean(&mut mask, w, h, &self.o.mask, holes.as_ref())?;
+        Ok((mask, white_drop))
+    }
+}
+
+/// A view's decoded monitor points as stored (fixed point, cell widths) and its preview, with
+/// the counts of its object pixels, those decoded, and those decoded to the last bit.
+struct ViewImages {
+    monitor: Vec<Vec4w>,
+    preview: Vec<Vec3b>,
+    object: usize,
+    decoded: usize,
+    complete: usize,
+}
+
+impl ViewImages {
+    /// The images of capture `cap` under its cleaned `mask`.
+    fn of(cap: &DecodedCapture, mask: &[u8], code: &GrayCode, fixed: &FixedPoint) -> Self {
+        let mut im = ViewImages {
+            monitor: Vec::with_capacity(mask.len()),
+            preview: Vec::with_capacity(mask.len()),
+            object: 0,
+            decoded: 0,
+            complete: 0,
+        };
         for ((d, (&m, &lit)), &white) in cap
             .pixels
             .iter()
@@ -465,7 +508,7 @@ impl ViewWriter<'_> {
             .zip(&cap.white)
         {
             let valid = lit && d.u.bits > 0 && d.v.bits > 0;
-            monitor.push(if valid {
+            im.monitor.push(if valid {
                 Vec4w::from([
                     fixed.encode(d.u.coord as f64),
                     fixed.encode(d.v.coord as f64),
@@ -475,56 +518,26 @@ impl ViewWriter<'_> {
             } else {
                 Vec4w::from([NONE; 4])
             });
-            if m == 255 {
-                object += 1;
-                decoded += valid as usize;
-                complete += (valid && d.complete(code)) as usize;
-                // Object pixels: decoded coordinates as colours (blue: row, green: column), red if
-                // nothing decoded.
-                preview.push(if valid {
-                    Vec3b::from([
-                        (255.0 * d.v.coord / code.height as f32) as u8,
-                        (255.0 * d.u.coord / code.width as f32) as u8,
-                        40,
-                    ])
-                } else {
-                    Vec3b::from([0, 0, 255])
-                });
-            } else {
+            if m != 255 {
                 let g = white / 2;
-                preview.push(Vec3b::from([g, g, g]));
+                im.preview.push(Vec3b::from([g, g, g]));
+                continue;
             }
+            im.object += 1;
+            im.decoded += valid as usize;
+            im.complete += (valid && d.complete(code)) as usize;
+            // Object pixels: decoded coordinates as colours (blue: row, green: column), red if
+            // nothing decoded.
+            im.preview.push(if valid {
+                Vec3b::from([
+                    (255.0 * d.v.coord / code.height as f32) as u8,
+                    (255.0 * d.u.coord / code.width as f32) as u8,
+                    40,
+                ])
+            } else {
+                Vec3b::from([0, 0, 255])
+            });
         }
-        let contrasts = object_contrasts(cap, &mask, &monitor);
-        let coverage = share
-            .as_deref()
-            .map(|s| outline_coverage(&mask, s, cap.width));
-        form::write_view(
-            out,
-            k,
-            (cap.width as u32, cap.height as u32),
-            &mask,
-            &monitor,
-            form::ViewExtras {
-                contrasts: Some(&contrasts),
-                coverage: coverage.as_deref(),
-            },
-        )?;
-        write_pixels(
-            &out.join("preview").join(format!("view_{k:03}.png")),
-            cap.width as u32,
-            cap.height as u32,
-            &preview,
-        )?;
-        let edge = pixels_at_monitor_edge(&mask, bg, cap.width);
-        Ok(ViewSummary {
-            view: k,
-            object_pixels: object,
-            decoded_share: decoded as f64 / object.max(1) as f64,
-            complete_share: complete as f64 / decoded.max(1) as f64,
-            white_drop: white_drop.map(f64::from),
-            monitor_edge_px: edge,
-            warning: view_warning(object, edge),
-        })
+        im
     }
 }

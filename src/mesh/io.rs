@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Point3;
 use ply_rs_bw::parser::{Parser, Reader};
 use ply_rs_bw::ply::{
-    Addable, ElementDef, Encoding, Ply, Property, PropertyAccess, PropertyAccessResult,
+    Addable, ElementDef, Encoding, Header, Ply, Property, PropertyAccess, PropertyAccessResult,
     PropertyDef, PropertyType, ScalarType,
 };
 use ply_rs_bw::writer::Writer;
@@ -336,30 +336,12 @@ fn read_ply(path: &Path) -> Result<(RawMesh, Option<Vec<f64>>), MeshIoError> {
         .map_err(|e| parse_err(&e))?;
         match name.as_str() {
             "vertex" => {
-                let v = vparser
-                    .read_payload_for_element(&mut reader, element, &header)
-                    .map_err(|e| parse_err(&e))?;
-                if v.len() != element.count {
-                    return Err(parse_err(&format!(
-                        "the header promises {} vertices but the file holds {}",
-                        element.count,
-                        v.len()
-                    )));
-                }
-                verts = Some(v);
+                let read = (&mut reader, element, &header);
+                verts = Some(read_counted(&vparser, read, "vertices", &parse_err)?);
             }
             "face" => {
-                let f = fparser
-                    .read_payload_for_element(&mut reader, element, &header)
-                    .map_err(|e| parse_err(&e))?;
-                if f.len() != element.count {
-                    return Err(parse_err(&format!(
-                        "the header promises {} faces but the file holds {}",
-                        element.count,
-                        f.len()
-                    )));
-                }
-                faces = Some(f);
+                let read = (&mut reader, element, &header);
+                faces = Some(read_counted(&fparser, read, "faces", &parse_err)?);
             }
             // Other elements (edges, materials, …) must still be read to reach later ones.
             _ => {
@@ -385,6 +367,27 @@ fn read_ply(path: &Path) -> Result<(RawMesh, Option<Vec<f64>>), MeshIoError> {
         ),
         quality,
     ))
+}
+
+/// The `element`'s items, read with `parser`, checked to be as many as the header promises
+/// (`what`: their name in the message; `parse_err` makes the error).
+fn read_counted<E: PropertyAccess, R: BufRead>(
+    parser: &Parser<E>,
+    (reader, element, header): (&mut Reader<R>, &ElementDef, &Header),
+    what: &str,
+    parse_err: &dyn Fn(&dyn std::fmt::Display) -> MeshIoError,
+) -> Result<Vec<E>, MeshIoError> {
+    let items = parser
+        .read_payload_for_element(reader, element, header)
+        .map_err(|e| parse_err(&e))?;
+    if items.len() != element.count {
+        return Err(parse_err(&format!(
+            "the header promises {} {what} but the file holds {}",
+            element.count,
+            items.len()
+        )));
+    }
+    Ok(items)
 }
 
 /// A PLY element glasscan writes: a vertex (x, y, z as doubles, a quality as float) or a

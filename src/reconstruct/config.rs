@@ -316,6 +316,18 @@ const SIZING_PULL: f64 = 1.5;
 impl Settings {
     /// The preset's settings.
     pub fn preset(preset: Preset) -> Self {
+        let fast = Self::fast();
+        let settings = match preset {
+            Preset::Fast => fast,
+            Preset::Balanced => Self::balanced(fast),
+            Preset::Accurate => Self::accurate(fast),
+            Preset::Drt => Self::drt(fast),
+        };
+        Settings { preset, ..settings }
+    }
+
+    /// `fast`'s settings, from which the other presets start.
+    fn fast() -> Self {
         let large_steps = Optimizer::LargeSteps {
             lambda: 20.0,
             lr_edge: 0.3,
@@ -324,8 +336,8 @@ impl Settings {
             clip: 10.0,
             lr_end_share: 1.0,
         };
-        let base = Settings {
-            preset,
+        Settings {
+            preset: Preset::Fast,
             seed: 0,
             stages: 3,
             start_edge: 1.0 / 60.0,
@@ -366,77 +378,88 @@ impl Settings {
             sizing_pull: 0.0,
             silhouette_scale: 1.0 / 250.0,
             silhouette_probe: 0.03,
-        };
-        match preset {
-            Preset::Fast => base,
-            Preset::Balanced => Settings {
-                final_edge: 1.0 / 250.0,
-                iterations: 150,
-                refraction_views: 4,
-                silhouette_views: 8,
-                sizing_error: SIZING_ERROR,
-                sizing_max_edge: SIZING_MAX_EDGE,
-                sizing_pull: SIZING_PULL,
-                ..base
+        }
+    }
+
+    /// `balanced`'s settings: `fast`'s (`base`) with finer last edges, more iterations and views
+    /// per iteration, and edges that follow the surface.
+    fn balanced(base: Self) -> Self {
+        Settings {
+            final_edge: 1.0 / 250.0,
+            iterations: 150,
+            refraction_views: 4,
+            silhouette_views: 8,
+            sizing_error: SIZING_ERROR,
+            sizing_max_edge: SIZING_MAX_EDGE,
+            sizing_pull: SIZING_PULL,
+            ..base
+        }
+    }
+
+    /// `accurate`'s settings: `fast`'s (`base`) with more and finer stages, longer ones, and its
+    /// footprint and smoothing chosen from the scene.
+    fn accurate(base: Self) -> Self {
+        Settings {
+            stages: 5,
+            final_edge: 1.0 / 350.0,
+            iterations: 300,
+            refraction_views: 4,
+            silhouette_views: 8,
+            // Rays a camera pixel's width apart at the object about as far as its finest
+            // edge: 2×2 where a pixel spans 1.5 finest edges or more
+            // (docs/decisions.md#accurate-chooses-its-footprint-from-the-camera-pixel-at-the-object).
+            footprint: AUTO_FOOTPRINT,
+            // Its stages finer than about `balanced`'s second (1/155 of the diagonal) smooth
+            // as far in millimetres as that one
+            // (docs/decisions.md#accurates-fine-stages-regularisers-that-reach-as-far-in-millimetres).
+            smoothing_edge: 0.0065,
+            // Its fine stages with closer rays stall at 5 MP
+            // (docs/decisions.md#rays-that-follow-the-mesh).
+            ray_edge_spacing: 0.0,
+            sizing_error: SIZING_ERROR,
+            sizing_max_edge: SIZING_MAX_EDGE,
+            sizing_pull: SIZING_PULL,
+            ..base
+        }
+    }
+
+    /// `drt`'s settings: DRT's schedule, optimiser and terms over `fast`'s (`base`).
+    fn drt(base: Self) -> Self {
+        // DRT sums its terms (weights 40·217.5/H² per ray, 2e-3·217.5/H per contour edge,
+        // 0.08·mean edge/10 per edge, H = 960); the weights here turn glasscan's means into
+        // those sums for a 1280×960 view of a ~250 mm object (~1e5 rays, ~2e3 contour edges per
+        // view, ~1.4e5 edges).
+        Settings {
+            stages: 20,
+            start_edge: 1.0 / 30.0,
+            final_edge: 1.0 / 300.0,
+            iterations: 200,
+            remesh_iterations: 3,
+            optimizer: Optimizer::Sgd {
+                lr_start: 0.1,
+                lr_end: 0.05,
+                momentum: 0.95,
             },
-            Preset::Accurate => Settings {
-                stages: 5,
-                final_edge: 1.0 / 350.0,
-                iterations: 300,
-                refraction_views: 4,
-                silhouette_views: 8,
-                // Rays a camera pixel's width apart at the object about as far as its finest
-                // edge: 2×2 where a pixel spans 1.5 finest edges or more
-                // (docs/decisions.md#accurate-chooses-its-footprint-from-the-camera-pixel-at-the-object).
-                footprint: AUTO_FOOTPRINT,
-                // Its stages finer than about `balanced`'s second (1/155 of the diagonal) smooth
-                // as far in millimetres as that one
-                // (docs/decisions.md#accurates-fine-stages-regularisers-that-reach-as-far-in-millimetres).
-                smoothing_edge: 0.0065,
-                // Its fine stages with closer rays stall at 5 MP
-                // (docs/decisions.md#rays-that-follow-the-mesh).
-                ray_edge_spacing: 0.0,
-                sizing_error: SIZING_ERROR,
-                sizing_max_edge: SIZING_MAX_EDGE,
-                sizing_pull: SIZING_PULL,
-                ..base
-            },
-            // DRT's schedule, optimiser and terms. DRT sums its terms (weights 40·217.5/H² per
-            // ray, 2e-3·217.5/H per contour edge, 0.08·mean edge/10 per edge, H = 960); the
-            // weights here turn glasscan's means into those sums for a 1280×960 view of a
-            // ~250 mm object (~1e5 rays, ~2e3 contour edges per view, ~1.4e5 edges).
-            Preset::Drt => Settings {
-                stages: 20,
-                start_edge: 1.0 / 30.0,
-                final_edge: 1.0 / 300.0,
-                iterations: 200,
-                remesh_iterations: 3,
-                optimizer: Optimizer::Sgd {
-                    lr_start: 0.1,
-                    lr_end: 0.05,
-                    momentum: 0.95,
-                },
-                weight_refraction: 900.0,
-                weight_silhouette: 7.0,
-                weight_smoothness: 1100.0,
-                refraction_views: 1,
-                silhouette_views: 8,
-                ray_spacing: 1.0 / 250.0,
-                ray_edge_spacing: 0.0,
-                normals: NormalModel::Face,
-                residual: ResidualForm::Direction,
-                robust: Robust::L2,
-                silhouette: SilhouetteForm::Drt,
-                smoothness: Smoothness::NegLogOnePlusCos,
-                warmup_stages: 0,
-                validation_share: 0.0,
-                min_cos: 0.0,
-                average_share: 0.0,
-                weight_bits: 0.0,
-                weight_membrane: 0.0,
-                silhouette_probe: 1.0,
-                ..base
-            },
+            weight_refraction: 900.0,
+            weight_silhouette: 7.0,
+            weight_smoothness: 1100.0,
+            refraction_views: 1,
+            silhouette_views: 8,
+            ray_spacing: 1.0 / 250.0,
+            ray_edge_spacing: 0.0,
+            normals: NormalModel::Face,
+            residual: ResidualForm::Direction,
+            robust: Robust::L2,
+            silhouette: SilhouetteForm::Drt,
+            smoothness: Smoothness::NegLogOnePlusCos,
+            warmup_stages: 0,
+            validation_share: 0.0,
+            min_cos: 0.0,
+            average_share: 0.0,
+            weight_bits: 0.0,
+            weight_membrane: 0.0,
+            silhouette_probe: 1.0,
+            ..base
         }
     }
 

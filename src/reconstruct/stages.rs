@@ -250,17 +250,13 @@ pub(super) fn run_stage(
         edge_mm,
         settings.iterations,
     )?;
-    let (mut used, mut drops, mut contour) = (0, Drops::default(), 0);
-    let mut last = IterationRecord::default();
+    let mut tally = StageTally::default();
     let mut tail = TailMean::new(settings.iterations, settings.average_share);
     let warm_in = split
         .fit_targets
         .len()
         .div_ceil(settings.refraction_views.max(1));
     let mut coverage = Coverage::new(mesh.positions.len(), warm_in);
-    let mut membrane_share = 0.0f64;
-    let mut profile = CostProfile::default();
-    let timed = |t: &mut f64, start: Instant| *t += start.elapsed().as_secs_f64();
     let mut index = free
         .map(|range| IndexStepper::new(ior, range, settings.iterations, settings.average_share));
     for it in 0..settings.iterations {
@@ -275,54 +271,85 @@ pub(super) fn run_stage(
             &draws,
             &mut coverage,
         )?;
-        timed(&mut profile.terms, t);
-        profile.refraction += times.refraction;
-        profile.silhouette += times.silhouette;
-        profile.regularisers += times.regularisers;
-        membrane_share = membrane_share.max(share);
-        used += terms.refraction.used;
-        drops.add(&terms.refraction.drops);
-        contour += terms.silhouette.used;
+        tally.add_terms(&terms, share, &times, t.elapsed().as_secs_f64());
         if let Some(index) = &mut index {
             step_index(index, &terms.refraction, (s, it))?;
         }
         let (record, grad) = terms.combine(settings, (s, it));
-        last = record;
-        history.push(last);
-        progress.iteration(&last);
-        step_positions(
-            (&mut stepper, &mut surface),
-            mesh,
-            &grad,
-            (s, it),
-            &mut profile,
-        )?;
+        tally.last = record;
+        history.push(record);
+        progress.iteration(&record);
+        let profile = &mut tally.profile;
+        step_positions((&mut stepper, &mut surface), mesh, &grad, (s, it), profile)?;
         tail.add(it, &mesh.positions);
     }
-    let report = StageReport {
-        stage: s,
-        edge_mm,
-        vertices: mesh.positions.len(),
-        faces: mesh.faces.len(),
-        seconds: 0.0,
-        refraction_rays_used: used,
-        refraction_drops: drops,
-        contour_edges_used: contour,
-        degenerate_faces: 0,
-        last,
-        validation: None,
-        averaged: false,
-        unseen_share: coverage.unseen_share(),
-        membrane_share,
-        profile: CostProfile {
-            refraction_rays_per_s: used as f64 / profile.refraction.max(1e-9),
-            ..profile
-        },
-        ior: Some(index.as_ref().map_or(ior, |x| x.estimate())),
-        skipped: false,
-        blur: None,
-    };
+    let ior = Some(index.as_ref().map_or(ior, |x| x.estimate()));
+    let report = tally.report((s, edge_mm), mesh, coverage.unseen_share(), ior);
     Ok((report, tail.mean()))
+}
+
+/// What a stage's iterations add up to, for its report.
+#[derive(Default)]
+struct StageTally {
+    /// Refraction rays used, and those dropped, by reason.
+    used: usize,
+    drops: Drops,
+    /// Contour edges used.
+    contour: usize,
+    /// The largest share of the mesh's vertices the membrane term acted on in an iteration.
+    membrane_share: f64,
+    /// The last iteration's record.
+    last: IterationRecord,
+    profile: CostProfile,
+}
+
+impl StageTally {
+    /// Adds an iteration's `terms` (computed in `seconds` of wall time, `times` each) and the
+    /// share of the vertices its membrane term acted on.
+    fn add_terms(&mut self, terms: &Terms, share: f64, times: &TermTimes, seconds: f64) {
+        self.profile.terms += seconds;
+        self.profile.refraction += times.refraction;
+        self.profile.silhouette += times.silhouette;
+        self.profile.regularisers += times.regularisers;
+        self.membrane_share = self.membrane_share.max(share);
+        self.used += terms.refraction.used;
+        self.drops.add(&terms.refraction.drops);
+        self.contour += terms.silhouette.used;
+    }
+
+    /// The report of stage `s` at edge length `edge_mm`, ending on `mesh`, with the share of
+    /// its vertices no compared ray touched (`unseen_share`) and its index estimate.
+    fn report(
+        self,
+        (s, edge_mm): (usize, f64),
+        mesh: &TriMesh,
+        unseen_share: f64,
+        ior: Option<f64>,
+    ) -> StageReport {
+        StageReport {
+            stage: s,
+            edge_mm,
+            vertices: mesh.positions.len(),
+            faces: mesh.faces.len(),
+            seconds: 0.0,
+            refraction_rays_used: self.used,
+            refraction_drops: self.drops,
+            contour_edges_used: self.contour,
+            degenerate_faces: 0,
+            last: self.last,
+            validation: None,
+            averaged: false,
+            unseen_share,
+            membrane_share: self.membrane_share,
+            profile: CostProfile {
+                refraction_rays_per_s: self.used as f64 / self.profile.refraction.max(1e-9),
+                ..self.profile
+            },
+            ior,
+            skipped: false,
+            blur: None,
+        }
+    }
 }
 
 /// One optimiser step of `mesh`'s vertex positions down `grad` at iteration `it` of stage `s`,
