@@ -124,12 +124,13 @@ fn print_comparison(scan: &glasscan::scan::Scan, summaries: &[ViewSummary]) -> R
         .map(|s| compare_view(&scan.dir, s.view, &fixed))
         .collect::<Result<_>>()?;
     outln!(
-        "{:>5} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>12} {:>9} {:>11}",
+        "{:>5} {:>8} {:>9} {:>9} {:>9} {:>9} {:>9} {:>9} {:>12} {:>12} {:>9} {:>11}",
         "view",
         "mask IoU",
         "extra",
         "missing",
         "edge px",
+        "area px",
         "valid",
         "decoded %",
         "med err foot",
@@ -139,12 +140,14 @@ fn print_comparison(scan: &glasscan::scan::Scan, summaries: &[ViewSummary]) -> R
     );
     for c in &rows {
         outln!(
-            "{:>5} {:>8.4} {:>9} {:>9} {:>9.3} {:>9} {:>9.1} {:>12.2} {:>12.2} {:>9.1} {:>11.1}",
+            "{:>5} {:>8.4} {:>9} {:>9} {:>9.3} {:>9} {:>9} {:>9.1} {:>12.2} {:>12.2} {:>9.1} {:>11.1}",
             c.view,
             c.mask_iou,
             c.mask_extra,
             c.mask_missing,
             c.edge_offset_px(),
+            c.coverage_offset_px()
+                .map_or("—".to_string(), |v| format!("{v:.3}")),
             c.valid,
             100.0 * c.decoded_share,
             c.median_error_footprint_px,
@@ -160,8 +163,12 @@ fn print_comparison(scan: &glasscan::scan::Scan, summaries: &[ViewSummary]) -> R
     let w = |f: fn(&Comparison) -> f64| {
         rows.iter().map(|c| f(c) * c.compared as f64).sum::<f64>() / n.max(1) as f64
     };
+    let by_area = match Comparison::overall_coverage_offset_px(&rows) {
+        Some(v) => format!("{v:+.3} px"),
+        None => "not measured (the truth has no coverage: simulated before 0.15.0)".to_string(),
+    };
     outln!(
-        "overall: mean mask IoU {:.4}; decoded outline {:+.3} px from the true one (> 0: outside); the monitor seen directly decoded at ({:+.3}, {:+.3}) camera px from the truth (x, y; {direct} px); {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
+        "overall: mean mask IoU {:.4}; decoded outline {:+.3} px from the true one (> 0: outside), by area against the true coverage {by_area}; the monitor seen directly decoded at ({:+.3}, {:+.3}) camera px from the truth (x, y; {direct} px); {:.1} % of {valid} valid object pixels decoded; of those {:.1} % within 1 monitor pixel of the footprint centroid, {:.1} % within their uncertainty; median error against the footprint centroid {:.3} px",
         rows.iter().map(|c| c.mask_iou).sum::<f64>() / rows.len().max(1) as f64,
         Comparison::overall_edge_offset_px(&rows),
         direct_offset[0],

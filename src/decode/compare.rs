@@ -6,6 +6,8 @@ use anyhow::{bail, Result};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec3w, Vec4w};
 use serde::Serialize;
 
+use crate::scan::decoded::is_object;
+use crate::scan::outline::decode_coverage;
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::median;
 
@@ -37,6 +39,12 @@ pub struct Comparison {
     /// the monitor offset mapped back through the view's mean monitor-per-camera-pixel
     /// Jacobian): a camera-side bias of the capture or the decoder, whatever the resolution.
     pub direct_offset_px: [f64; 2],
+    /// The decoded silhouette's area, pixels: its outline pixels' measured coverage where the
+    /// decode wrote it, 1 for its other object pixels.
+    pub decoded_area_px: f64,
+    /// The true silhouette's area from the simulator's true coverage (`None`: the truth has no
+    /// `view_NNN_coverage.png`).
+    pub true_area_px: Option<f64>,
 }
 
 impl Comparison {
@@ -53,6 +61,23 @@ impl Comparison {
             .map(|c| c.mask_extra as f64 - c.mask_missing as f64)
             .sum();
         signed / rows.iter().map(|c| c.outline).sum::<usize>().max(1) as f64
+    }
+
+    /// Mean signed offset of the decoded outline from the true one by area, camera pixels
+    /// (> 0: the decoded silhouette is larger): (decoded − true area) / outline length, the
+    /// areas to a fraction of a pixel ([`Self::decoded_area_px`], [`Self::true_area_px`]).
+    pub fn coverage_offset_px(&self) -> Option<f64> {
+        Self::overall_coverage_offset_px(std::slice::from_ref(self))
+    }
+
+    /// [`Self::coverage_offset_px`] over several views together (`None` if one lacks the true
+    /// coverage).
+    pub fn overall_coverage_offset_px(rows: &[Comparison]) -> Option<f64> {
+        let signed = rows
+            .iter()
+            .map(|c| c.true_area_px.map(|t| c.decoded_area_px - t))
+            .sum::<Option<f64>>()?;
+        Some(signed / rows.iter().map(|c| c.outline).sum::<usize>().max(1) as f64)
     }
 
     /// [`Self::direct_offset_px`] over several views together (weighted by their pixels).
@@ -154,6 +179,14 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
     }
     let n = e_foot.len();
     let direct = direct_view((&m, &tm), &mon, &centre, &unfix)?;
+    let decoded_coverage = crate::scan::decoded::coverage_path(&dec, k);
+    let decoded_area_px =
+        decoded_area(&m, decoded_coverage.is_file().then_some(&decoded_coverage))?;
+    let true_coverage = truth.join(format!("view_{k:03}_coverage.png"));
+    let true_area_px = match true_coverage.is_file() {
+        true => Some(true_area(&load(&true_coverage)?)?),
+        false => None,
+    };
     Ok(Comparison {
         view: k,
         mask_iou: inter as f64 / union.max(1) as f64,
@@ -169,7 +202,41 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
         outline: outline_length(tm.data_bytes()?, tm.cols() as usize),
         direct_compared: direct.count,
         direct_offset_px: direct.offset_px(),
+        decoded_area_px,
+        true_area_px,
     })
+}
+
+/// The decoded silhouette's area (pixels) from its `mask` and, where given, the coverage image
+/// at `coverage` (the decoded form's values, [`decode_coverage`]).
+fn decoded_area(mask: &Mat, coverage: Option<&std::path::PathBuf>) -> Result<f64> {
+    let inside: Vec<bool> = mask.data_bytes()?.iter().map(|&m| is_object(m)).collect();
+    let Some(path) = coverage else {
+        return Ok(inside.iter().filter(|&&i| i).count() as f64);
+    };
+    let c = load(path)?;
+    let values = c.data_bytes()?;
+    if values.len() != inside.len() {
+        bail!(
+            "{}: {} pixels, the mask {}",
+            path.display(),
+            values.len(),
+            inside.len()
+        );
+    }
+    Ok(values
+        .iter()
+        .zip(&inside)
+        .map(|(&v, &i)| decode_coverage(v, i))
+        .sum())
+}
+
+/// The true silhouette's area (pixels) from the simulator's 16-bit coverage image `c`.
+fn true_area(c: &Mat) -> Result<f64> {
+    Ok(c.data_typed::<u16>()?
+        .iter()
+        .map(|&v| f64::from(v) / 65535.0)
+        .sum())
 }
 
 /// The monitor seen without the object in a view: pixels outside both `masks` (decoded, true)

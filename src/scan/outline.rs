@@ -30,7 +30,7 @@ pub fn encode_coverage(c: f32, inside: bool) -> u8 {
 
 /// The coverage stored value `v` of a pixel on the `inside` or outside side of the outline
 /// stands for, kept on that side of ½; unmeasured: 1 inside, 0 outside.
-fn decode_coverage(v: u8, inside: bool) -> f64 {
+pub fn decode_coverage(v: u8, inside: bool) -> f64 {
     let c = if UNMEASURED.contains(&v) {
         f64::from(u8::from(inside))
     } else {

@@ -1,9 +1,11 @@
 //! `glasscan simulate`: a synthetic scan of a mesh on a DRT-like rig — calibration files,
 //! `scan.toml`, the raw captures of every Gray-code pattern (and the background set), and the
 //! ground truth (the placed mesh; per view and pixel the pixel-centre ray's monitor point and
-//! outcome, the silhouette mask, and the footprint of the whole pixel on the monitor).
+//! outcome, the silhouette mask, the share of the pixel the object covers, and the footprint of
+//! the whole pixel on the monitor).
 
 pub mod calibration;
+pub mod coverage;
 pub mod light;
 mod options;
 pub mod render;
@@ -33,6 +35,7 @@ use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::folder::{StagedFolder, FORCE_HINT};
 use crate::util::image::{write_pixels, write_png};
 use crate::util::{median, scatter_seed};
+use coverage::true_coverage;
 pub use light::Transport;
 use light::{add_physical_light, Light};
 use options::check_options;
@@ -286,7 +289,20 @@ fn render_views(
         let physical = (!o.decoded_only && o.transport == Transport::Physical).then_some(&surface);
         let (samples, light) = trace_in_bands(&view, o.spp, physical, BAND_SAMPLES)?;
         tally.add(&samples, o.spp);
-        write_truth(&truth, k, &samples, &scan.camera, o.spp, &fixed)?;
+        let centre_hit: Vec<bool> = samples
+            .iter()
+            .step_by(o.spp as usize)
+            .map(|c| c.outcome.hit_object())
+            .collect();
+        let coverage = true_coverage(&view, &centre_hit)?;
+        write_truth(
+            &truth,
+            k,
+            (&samples, &coverage),
+            &scan.camera,
+            o.spp,
+            &fixed,
+        )?;
         if o.decoded_only {
             let cam = &scan.camera;
             decoded.push(write_exact_decoded(
@@ -447,13 +463,15 @@ pub(crate) fn write_sensor_image(
 ///   point (monitor pixels), and its outcome code + 16 (see [`Outcome::code`]);
 /// - `view_NNN_footprint.png`, 4 channels: (u + 1)·s, (v + 1)·s of the centroid of the pixel's
 ///   area samples that reached the monitor, their RMS spread · s, and the share of them · 65535;
-/// - `view_NNN_mask.png`: 255 where the pixel-centre ray meets the object.
+/// - `view_NNN_mask.png`: 255 where the pixel-centre ray meets the object;
+/// - `view_NNN_coverage.png`, 16-bit: the share of the pixel's area whose rays meet the object
+///   (`coverage`, [`true_coverage`]) · 65535.
 ///
 /// s = `fixed_point_scale` of `truth/summary.json`; 65535 marks "no monitor point".
 fn write_truth(
     dir: &Path,
     k: usize,
-    samples: &[Sample],
+    (samples, coverage): (&[Sample], &[f32]),
     cam: &Camera,
     spp: u32,
     fixed: &FixedPoint,
@@ -514,6 +532,16 @@ fn write_truth(
         cam.width,
         cam.height,
         &mask,
+    )?;
+    let coverage: Vec<u16> = coverage
+        .iter()
+        .map(|&c| (65535.0 * c.clamp(0.0, 1.0)).round() as u16)
+        .collect();
+    write_pixels(
+        &dir.join(format!("view_{k:03}_coverage.png")),
+        cam.width,
+        cam.height,
+        &coverage,
     )?;
     Ok(())
 }
