@@ -44,8 +44,9 @@ pub enum ScanKind {
     /// and their ghosts).
     Physical,
     /// A diagnostic: the `physical` scan decoded, then every view's decoded silhouette replaced
-    /// by the simulator's true one (the pixels whose centre ray meets the object). Against
-    /// `physical` it measures how much of the error the decoded silhouettes cause.
+    /// by the simulator's true one (the pixels whose centre ray meets the object, and its
+    /// outline's coverage by the true coverage blurred as the captures are). Against `physical`
+    /// it measures how much of the error the decoded silhouettes cause.
     PhysicalTrueMasks,
 }
 
@@ -348,25 +349,29 @@ fn ensure_scan(
     };
     simulated_scan(&mesh, dir, &opts, |_| ())?;
     if kind == ScanKind::PhysicalTrueMasks {
-        use_true_masks(dir)?;
+        use_true_masks(dir, opts.blur_px)?;
     }
     log(&format!("  {:.1} s", t0.elapsed().as_secs_f64()));
     Ok(())
 }
 
-/// Replaces every decoded silhouette of the simulated scan in `dir` by the simulator's true one
-/// (views decode left out stay out), then marks the scan done.
-fn use_true_masks(dir: &Path) -> Result<()> {
+/// Replaces every decoded silhouette of the simulated scan in `dir` by the simulator's true one,
+/// its outline's coverage by the true coverage blurred as the captures were (a Gaussian of σ
+/// `blur_px` camera pixels: what a decoder that measured each pixel's share exactly would
+/// give), views decode left out staying out; then marks the scan done.
+fn use_true_masks(dir: &Path, blur_px: f64) -> Result<()> {
     let (decoded, truth) = (dir.join("decoded"), dir.join("truth"));
     for k in 0..SCAN_VIEWS {
         let name = format!("view_{k:03}_mask.png");
-        if decoded.join(&name).is_file() {
-            let bytes = std::fs::read(truth.join(&name))
-                .with_context(|| format!("cannot read {}", truth.join(&name).display()))?;
-            let path = decoded.join(&name);
-            crate::util::atomic::write_atomic(&path, |w| w.write_all(&bytes))
-                .with_context(|| format!("cannot write {}", path.display()))?;
+        if !decoded.join(&name).is_file() {
+            continue;
         }
+        let bytes = std::fs::read(truth.join(&name))
+            .with_context(|| format!("cannot read {}", truth.join(&name).display()))?;
+        let path = decoded.join(&name);
+        crate::util::atomic::write_atomic(&path, |w| w.write_all(&bytes))
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        write_true_coverage(dir, k, blur_px)?;
     }
     let mark = decoded.join(TRUE_MASKS_MARK);
     std::fs::write(
@@ -374,6 +379,42 @@ fn use_true_masks(dir: &Path) -> Result<()> {
         "decoded silhouettes replaced by the simulator's true ones\n",
     )
     .with_context(|| format!("cannot write {}", mark.display()))
+}
+
+/// View `k`'s decoded outline coverage from the scan's true mask and true coverage (in `dir`),
+/// the coverage blurred by a Gaussian of σ `blur_px` camera pixels.
+fn write_true_coverage(dir: &Path, k: usize, blur_px: f64) -> Result<()> {
+    use opencv::core::{MatTraitConst, MatTraitConstManual};
+    let read = |name: &str| -> Result<opencv::core::Mat> {
+        let path = dir.join("truth").join(format!("view_{k:03}_{name}.png"));
+        let m = opencv::imgcodecs::imread(
+            path.to_str().unwrap_or_default(),
+            opencv::imgcodecs::IMREAD_UNCHANGED,
+        )?;
+        if m.empty() {
+            bail!("cannot read {}", path.display());
+        }
+        Ok(m)
+    };
+    let (mask, coverage) = (read("mask")?, read("coverage")?);
+    let mut share = opencv::core::Mat::default();
+    coverage.convert_to(&mut share, opencv::core::CV_32F, 1.0 / 65535.0, 0.0)?;
+    if blur_px > 0.0 {
+        let sharp = share.try_clone()?;
+        opencv::imgproc::gaussian_blur(
+            &sharp,
+            &mut share,
+            opencv::core::Size::new(0, 0),
+            blur_px,
+            blur_px,
+            opencv::core::BORDER_REPLICATE,
+        )?;
+    }
+    let background: Vec<f32> = share.data_typed::<f32>()?.iter().map(|c| 1.0 - c).collect();
+    let width = mask.cols() as usize;
+    let outline = crate::decode::mask::outline_coverage(mask.data_bytes()?, &background, width);
+    let path = crate::scan::decoded::coverage_path(&dir.join("decoded"), k);
+    crate::util::image::write_pixels(&path, width as u32, mask.rows() as u32, &outline)
 }
 
 /// `n` views spread evenly over the scan's.
