@@ -385,16 +385,8 @@ fn use_true_masks(dir: &Path, blur_px: f64) -> Result<()> {
 /// the coverage blurred by a Gaussian of σ `blur_px` camera pixels.
 fn write_true_coverage(dir: &Path, k: usize, blur_px: f64) -> Result<()> {
     use opencv::core::{MatTraitConst, MatTraitConstManual};
-    let read = |name: &str| -> Result<opencv::core::Mat> {
-        let path = dir.join("truth").join(format!("view_{k:03}_{name}.png"));
-        let m = opencv::imgcodecs::imread(
-            path.to_str().unwrap_or_default(),
-            opencv::imgcodecs::IMREAD_UNCHANGED,
-        )?;
-        if m.empty() {
-            bail!("cannot read {}", path.display());
-        }
-        Ok(m)
+    let read = |name: &str| {
+        crate::decode::compare::load(&dir.join("truth").join(format!("view_{k:03}_{name}.png")))
     };
     let (mask, coverage) = (read("mask")?, read("coverage")?);
     let mut share = opencv::core::Mat::default();

@@ -121,17 +121,19 @@ impl DirectView {
     }
 }
 
-fn load(path: &Path) -> Result<Mat> {
+/// A decoded or truth image of a simulated scan, as stored (`IMREAD_UNCHANGED`).
+pub fn load(path: &Path) -> Result<Mat> {
     if !path.is_file() {
         bail!(
             "{}: missing (is this a scan made by `glasscan simulate`?)",
             path.display()
         );
     }
-    Ok(opencv::imgcodecs::imread(
-        path,
-        opencv::imgcodecs::IMREAD_UNCHANGED,
-    )?)
+    let m = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_UNCHANGED)?;
+    if m.empty() {
+        bail!("{}: not a readable image", path.display());
+    }
+    Ok(m)
 }
 
 /// Compares view `k` of the scan in `scan_dir` (decoded already) with its truth, both stored with
