@@ -105,7 +105,7 @@ pub fn calibrate_turntable(
         );
     }
     let object = board.object_points();
-    let Observed { obs, used, skipped } = observe(images, angles_deg, board, camera)?;
+    let Observed { obs, used, skipped } = observe(images, angles_deg, (board, &object), camera)?;
     if obs.len() < 3 {
         bail!(
             "the board was found in {} of {} images; the axis needs at least 3",
@@ -131,7 +131,7 @@ pub fn calibrate_turntable(
     let o = base.translation.vector;
     let c = c + d.into_inner() * d.dot(&(o - c.coords));
     let residuals = fit.residuals(&x);
-    let views = fit.view_reports(&x, used, &residuals);
+    let views = fit.view_reports(&x, (&d, &base), used, &residuals);
     Ok(TurntableCalibration {
         axis_point: c,
         axis_dir: d,
@@ -152,14 +152,13 @@ struct Observed {
 }
 
 /// The board in each of `images` (taken at `angles_deg`): its corners and its pose by PnP with
-/// the calibrated `camera`.
+/// the calibrated `camera` (`object`: the board's corners in its own frame, mm).
 fn observe(
     images: &[BoardImage],
     angles_deg: &[f64],
-    board: &Board,
+    (board, object): (&Board, &[Point3<f64>]),
     camera: &Camera,
 ) -> Result<Observed> {
-    let object = board.object_points();
     let object_cv: Vector<Point3d> = object.iter().map(|p| Point3d::new(p.x, p.y, p.z)).collect();
     let (k, dist) = camera_mats(camera)?;
     let (mut obs, mut used, mut skipped) = (Vec::new(), Vec::new(), Vec::new());
@@ -250,15 +249,16 @@ impl Fit<'_> {
     const N: usize = 10;
 
     /// Per image `used` (its path and given angle, in the observations' order), the angle the
-    /// fitted parameters `x` put it at against the given one, and its reprojection RMS from
-    /// the fit's `residuals` (pixels).
+    /// fitted parameters `x` (the axis direction `d` and the board's pose at angle 0 `base`
+    /// among them) put it at against the given one, and its reprojection RMS from the fit's
+    /// `residuals` (pixels).
     fn view_reports(
         &self,
         x: &DVector<f64>,
+        (d, base): (&Unit<Vector3<f64>>, &Isometry3<f64>),
         used: Vec<(PathBuf, f64)>,
         residuals: &DVector<f64>,
     ) -> Vec<TurntableView> {
-        let (d, _, base) = self.params(x);
         let per_image = 2 * self.object.len();
         used.into_iter()
             .zip(self.obs)
@@ -266,7 +266,7 @@ impl Fit<'_> {
             .map(|(((path, angle_deg), ob), r)| {
                 let rel = ob.pose.rotation * base.rotation.inverse();
                 let v = rel.scaled_axis();
-                let from_pnp = v.norm() * v.dot(&d).signum();
+                let from_pnp = v.norm() * v.dot(d).signum();
                 let measured = self.image_angle(x, ob, from_pnp);
                 let diff = (measured.to_degrees() - angle_deg + 180.0).rem_euclid(360.0) - 180.0;
                 let squares = r.iter().map(|e| e * e).sum::<f64>();
