@@ -389,19 +389,9 @@ fn write_true_coverage(dir: &Path, k: usize, blur_px: f64) -> Result<()> {
         crate::decode::compare::load(&dir.join("truth").join(format!("view_{k:03}_{name}.png")))
     };
     let (mask, coverage) = (read("mask")?, read("coverage")?);
-    let mut share = opencv::core::Mat::default();
-    coverage.convert_to(&mut share, opencv::core::CV_32F, 1.0 / 65535.0, 0.0)?;
-    if blur_px > 0.0 {
-        let sharp = share.try_clone()?;
-        opencv::imgproc::gaussian_blur(
-            &sharp,
-            &mut share,
-            opencv::core::Size::new(0, 0),
-            blur_px,
-            blur_px,
-            opencv::core::BORDER_REPLICATE,
-        )?;
-    }
+    let mut sharp = opencv::core::Mat::default();
+    coverage.convert_to(&mut sharp, opencv::core::CV_32F, 1.0 / 65535.0, 0.0)?;
+    let share = crate::simulate::camera_blur(&sharp, blur_px)?;
     let background: Vec<f32> = share.data_typed::<f32>()?.iter().map(|c| 1.0 - c).collect();
     let width = mask.cols() as usize;
     let outline = crate::decode::mask::outline_coverage(mask.data_bytes()?, &background, width);

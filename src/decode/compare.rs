@@ -182,12 +182,17 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
     let n = e_foot.len();
     let direct = direct_view((&m, &tm), &mon, &centre, &unfix)?;
     let decoded_coverage = crate::scan::decoded::coverage_path(&dec, k);
-    let decoded_area_px =
-        decoded_area(&m, decoded_coverage.is_file().then_some(&decoded_coverage))?;
+    let decoded_area_px = decoded_area(
+        &m,
+        decoded_coverage
+            .is_file()
+            .then_some(decoded_coverage.as_path()),
+    )?;
     let true_coverage = truth.join(format!("view_{k:03}_coverage.png"));
-    let true_area_px = match true_coverage.is_file() {
-        true => Some(true_area(&load(&true_coverage)?)?),
-        false => None,
+    let true_area_px = if true_coverage.is_file() {
+        Some(true_area(&load(&true_coverage)?)?)
+    } else {
+        None
     };
     Ok(Comparison {
         view: k,
@@ -211,7 +216,7 @@ pub fn compare_view(scan_dir: &Path, k: usize, fixed: &FixedPoint) -> Result<Com
 
 /// The decoded silhouette's area (pixels) from its `mask` and, where given, the coverage image
 /// at `coverage` (the decoded form's values, [`decode_coverage`]).
-fn decoded_area(mask: &Mat, coverage: Option<&std::path::PathBuf>) -> Result<f64> {
+fn decoded_area(mask: &Mat, coverage: Option<&Path>) -> Result<f64> {
     let inside: Vec<bool> = mask.data_bytes()?.iter().map(|&m| is_object(m)).collect();
     let Some(path) = coverage else {
         return Ok(inside.iter().filter(|&&i| i).count() as f64);

@@ -21,13 +21,12 @@ const BATCH_PIXELS: usize = 256;
 /// Per pixel of the view (row-major), the share of its area whose camera rays meet the object:
 /// measured on the sub-pixel grid for the pixels whose centre ray's outcome (`centre_hit`) differs
 /// from one of its 8 neighbours' — every pixel an outline crosses, but for features thinner than
-/// a pixel that no centre ray meets — and 0 or 1 from the centre ray elsewhere. Without a surface
-/// (no object), 0 everywhere.
+/// a pixel that no centre ray meets — and 0 or 1 from the centre ray elsewhere (everywhere
+/// without a surface: no centre ray then meets an object).
 pub fn true_coverage(v: &ViewSetup, centre_hit: &[bool]) -> Result<Vec<f32>, TraceError> {
     let (w, h) = (v.camera.width as usize, v.camera.height as usize);
     let mut coverage: Vec<f32> = centre_hit.iter().map(|&c| f32::from(u8::from(c))).collect();
     let Some(surface) = v.surface else {
-        coverage.fill(0.0);
         return Ok(coverage);
     };
     let outline: Vec<usize> = (0..w * h)

@@ -443,18 +443,27 @@ pub(crate) fn write_sensor_image(
         .map(|v| v.round().clamp(0.0, 255.0) as u8)
         .collect();
     let mat = Mat::new_rows_cols_with_data(height as i32, width as i32, &bytes)?;
-    let mut out = mat.try_clone()?;
-    if o.blur_px > 0.0 {
+    write_png(path, &camera_blur(&mat, o.blur_px)?)
+}
+
+/// `image` through the camera's defocus as the simulator models it: a Gaussian of σ `blur_px`
+/// camera pixels, the border replicated (0: a copy).
+pub(crate) fn camera_blur(
+    image: &(impl MatTraitConst + opencv::core::ToInputArray),
+    blur_px: f64,
+) -> Result<Mat> {
+    let mut out = image.try_clone()?;
+    if blur_px > 0.0 {
         opencv::imgproc::gaussian_blur(
-            &mat,
+            image,
             &mut out,
             Size::new(0, 0),
-            o.blur_px,
-            o.blur_px,
+            blur_px,
+            blur_px,
             opencv::core::BORDER_REPLICATE,
         )?;
     }
-    write_png(path, &out)
+    Ok(out)
 }
 
 /// Ground truth of one view, as 16-bit PNGs (read with OpenCV `imread(…, IMREAD_UNCHANGED)`,
