@@ -162,6 +162,25 @@ impl TriMesh {
             .collect()
     }
 
+    /// Per vertex, the largest angle between its normal ([`Self::vertex_normals`]) and the
+    /// normals of its faces, radians: about half the bend of a crease through the vertex, and
+    /// about (edge length / radius) / 2 on a smooth surface. 0 for a vertex that no face of
+    /// non-zero area uses.
+    pub fn normal_spread(&self) -> Vec<f64> {
+        let normals = self.vertex_normals();
+        let mut spread = vec![0.0f64; self.positions.len()];
+        for (f, t) in self.faces.iter().enumerate() {
+            let Some(n) = self.face_cross(f).try_normalize(0.0) else {
+                continue;
+            };
+            for &v in t {
+                let angle = n.dot(&normals[v as usize]).clamp(-1.0, 1.0).acos();
+                spread[v as usize] = spread[v as usize].max(angle);
+            }
+        }
+        spread
+    }
+
     /// Vertex positions as packed f32 triples (Embree's vertex buffer format).
     pub fn positions_f32(&self) -> Vec<f32> {
         self.positions
@@ -197,5 +216,25 @@ mod tests {
         let unique = stats::edge_lengths(&sphere).mean_mm;
         assert!((sphere.mean_edge_length() - unique).abs() < 1e-12 * unique);
         assert_eq!(TriMesh::new(vec![], vec![]).mean_edge_length(), 0.0);
+    }
+
+    /// A box's vertices on its edges and corners spread by about half a right angle or more, the
+    /// ones inside its sides not at all; a 10 mm sphere's (edges of about 1.3 mm) by less than
+    /// 15°.
+    #[test]
+    fn the_normal_spread_tells_a_box_s_edges_from_its_sides_and_from_a_sphere() {
+        let cube = shapes::cuboid(Vector3::new(10.0, 10.0, 10.0), 4);
+        let spread = cube.normal_spread();
+        for (p, s) in cube.positions.iter().zip(&spread) {
+            let on_edge = p.iter().filter(|c| (c.abs() - 5.0).abs() < 1e-9).count() >= 2;
+            if on_edge {
+                assert!(*s > 40f64.to_radians(), "{p}: {}°", s.to_degrees());
+            } else {
+                assert!(*s < 1e-9, "{p}: {}°", s.to_degrees());
+            }
+        }
+        let sphere = shapes::icosphere(10.0, 3);
+        let widest = sphere.normal_spread().into_iter().fold(0.0, f64::max);
+        assert!(widest < 15f64.to_radians(), "{}°", widest.to_degrees());
     }
 }

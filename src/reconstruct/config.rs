@@ -59,7 +59,11 @@ pub enum Optimizer {
     /// every other vertex (0, also when a config omits it: no cut). The
     /// learning rate falls geometrically over each stage's iterations to `lr_end_share` of itself
     /// (1, also when omitted: constant), so that a stage ends near its minimum rather than at the
-    /// noise of its sampled views.
+    /// noise of its sampled views. The edges at a crease vertex — one whose faces turn more than
+    /// `crease_deg` degrees from its normal ([`crate::mesh::TriMesh::normal_spread`], measured on
+    /// the stage's start mesh) — weigh `crease_share` of λ, so that a sharp edge the data ask
+    /// for can form rather than spread over the faces beside it (0, also when omitted: no
+    /// crease vertices).
     LargeSteps {
         lambda: f64,
         lr_edge: f64,
@@ -69,6 +73,10 @@ pub enum Optimizer {
         clip: f64,
         #[serde(default = "one_f64")]
         lr_end_share: f64,
+        #[serde(default)]
+        crease_deg: f64,
+        #[serde(default = "one_f64")]
+        crease_share: f64,
     },
 }
 
@@ -277,7 +285,20 @@ fn check_optimizer(o: &Optimizer) -> Result<(), String> {
             beta2,
             clip,
             lr_end_share,
+            crease_deg,
+            crease_share,
         } => {
+            if !(0.0..=90.0).contains(&crease_deg) {
+                return Err(
+                    "setting optimizer.large_steps: crease_deg must lie in [0, 90] degrees (0: off)"
+                        .into(),
+                );
+            }
+            if !(crease_share > 0.0 && crease_share <= 1.0) {
+                return Err(
+                    "setting optimizer.large_steps: crease_share must lie in (0, 1]".into(),
+                );
+            }
             if !(clip.is_finite() && clip >= 0.0) {
                 return Err(
                     "setting optimizer.large_steps: clip must be 0 (off) or positive".into(),
@@ -335,6 +356,10 @@ impl Settings {
             beta2: 0.999,
             clip: 10.0,
             lr_end_share: 1.0,
+            // No crease vertices: the block loses with them
+            // (docs/decisions.md#creases-under-large-steps).
+            crease_deg: 0.0,
+            crease_share: 1.0,
         };
         Settings {
             preset: Preset::Fast,
@@ -781,6 +806,46 @@ mod tests {
                 .with_overrides(&format!("ray_edge_spacing = {bad}\n"));
             let err = over.and_then(|s| s.check().map(|_| s)).unwrap_err();
             assert!(err.contains("ray_edge_spacing"), "{err}");
+        }
+    }
+
+    /// The crease weights are off unless a config sets them, which an older config or
+    /// checkpoint without them keeps; out-of-range values are refused by name.
+    #[test]
+    fn crease_weights_are_an_option_checked_by_name() {
+        let crease = |s: &Settings| match s.optimizer {
+            Optimizer::LargeSteps {
+                crease_deg,
+                crease_share,
+                ..
+            } => (crease_deg, crease_share),
+            Optimizer::Sgd { .. } => panic!("not large_steps"),
+        };
+        let s = Settings::preset(Preset::Balanced);
+        assert_eq!(crease(&s), (0.0, 1.0));
+        let table = |extra: &str| {
+            format!("optimizer = {{ large_steps = {{ lambda = 20.0, lr_edge = 0.3, beta1 = 0.9, beta2 = 0.999{extra} }} }}\n")
+        };
+        let old = s.clone().with_overrides(&table("")).unwrap();
+        assert_eq!(crease(&old), (0.0, 1.0));
+        let on = (s.clone())
+            .with_overrides(&table(", crease_deg = 25.0, crease_share = 0.25"))
+            .unwrap();
+        assert_eq!(crease(&on), (25.0, 0.25));
+        assert!(on.check().is_ok());
+        for (bad, key) in [
+            (", crease_deg = 95.0", "crease_deg"),
+            (", crease_deg = -1.0", "crease_deg"),
+            (", crease_share = 0.0", "crease_share"),
+            (", crease_share = 1.5", "crease_share"),
+        ] {
+            let err = s
+                .clone()
+                .with_overrides(&table(bad))
+                .unwrap()
+                .check()
+                .unwrap_err();
+            assert!(err.contains(key), "{err}");
         }
     }
 

@@ -74,33 +74,13 @@ impl Stepper {
                 beta2,
                 clip,
                 lr_end_share,
+                crease_deg,
+                crease_share,
             } => {
+                let system = LargeStepsSystem::new(mesh, lambda, (crease_deg, crease_share));
+                let llt = system.factor()?;
+                let u = system.apply(&mesh.positions);
                 let n = mesh.positions.len();
-                let mut neighbours: Vec<Vec<usize>> = vec![Vec::new(); n];
-                for e in mesh.interior_edges() {
-                    let [a, b] = e.verts.map(|v| v as usize);
-                    neighbours[a].push(b);
-                    neighbours[b].push(a);
-                }
-                let mut triplets = Vec::new();
-                for (i, nb) in neighbours.iter().enumerate() {
-                    triplets.push(Triplet::new(i, i, 1.0 + lambda * nb.len() as f64));
-                    triplets.extend(nb.iter().map(|&j| Triplet::new(i, j, -lambda)));
-                }
-                let m = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets)
-                    .map_err(|e| anyhow!("Large Steps matrix: {e:?}"))?;
-                let llt = m.sp_cholesky(Side::Lower).map_err(|e| {
-                    anyhow!("Large Steps: the matrix I + λL is not positive definite ({e:?})")
-                })?;
-                // u = (I + λL)x.
-                let x = Mat::from_fn(n, 3, |i, j| mesh.positions[i][j]);
-                let mut u = Mat::zeros(n, 3);
-                for (i, nb) in neighbours.iter().enumerate() {
-                    for j in 0..3 {
-                        let s: f64 = nb.iter().map(|&k| x[(k, j)]).sum();
-                        u[(i, j)] = (1.0 + lambda * nb.len() as f64) * x[(i, j)] - lambda * s;
-                    }
-                }
                 Stepper::LargeSteps {
                     llt,
                     u,
@@ -177,6 +157,75 @@ impl Stepper {
                     .collect()
             }
         }
+    }
+}
+
+/// Large Steps' matrix I + L_w over a mesh: L_w the uniform Laplacian whose edge (i, j) weighs
+/// λ, or `crease_share`·λ where i or j is a crease vertex (a face more than `crease_deg` degrees
+/// from its normal; none when `crease_deg` is 0). Without crease vertices the sums are formed as
+/// with a single weight, so the matrix and u are the same to the bit.
+struct LargeStepsSystem {
+    /// Per vertex, its neighbours, each with whether their edge is a crease vertex's.
+    rows: Vec<Vec<(usize, bool)>>,
+    /// The weights of a plain and of a crease vertex's edge.
+    weights: [f64; 2],
+}
+
+impl LargeStepsSystem {
+    fn new(mesh: &TriMesh, lambda: f64, (crease_deg, crease_share): (f64, f64)) -> Self {
+        let n = mesh.positions.len();
+        let crease: Vec<bool> = if crease_deg > 0.0 {
+            let bound = crease_deg.to_radians();
+            mesh.normal_spread().iter().map(|&s| s > bound).collect()
+        } else {
+            vec![false; n]
+        };
+        let mut rows: Vec<Vec<(usize, bool)>> = vec![Vec::new(); n];
+        for e in mesh.interior_edges() {
+            let [a, b] = e.verts.map(|v| v as usize);
+            let at_crease = crease[a] || crease[b];
+            rows[a].push((b, at_crease));
+            rows[b].push((a, at_crease));
+        }
+        Self {
+            rows,
+            weights: [lambda, lambda * crease_share],
+        }
+    }
+
+    /// 1 + the weights of row `i`'s edges.
+    fn diagonal(&self, i: usize) -> f64 {
+        let creases = self.rows[i].iter().filter(|r| r.1).count();
+        let plain = self.rows[i].len() - creases;
+        1.0 + self.weights[0] * plain as f64 + self.weights[1] * creases as f64
+    }
+
+    /// The Cholesky factor of the matrix.
+    fn factor(&self) -> Result<faer::sparse::linalg::solvers::Llt<usize, f64>> {
+        let n = self.rows.len();
+        let mut triplets = Vec::new();
+        for (i, row) in self.rows.iter().enumerate() {
+            triplets.push(Triplet::new(i, i, self.diagonal(i)));
+            let weight = |c: bool| self.weights[c as usize];
+            triplets.extend(row.iter().map(|&(j, c)| Triplet::new(i, j, -weight(c))));
+        }
+        let m = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets)
+            .map_err(|e| anyhow!("Large Steps matrix: {e:?}"))?;
+        m.sp_cholesky(Side::Lower)
+            .map_err(|e| anyhow!("Large Steps: the matrix I + λL is not positive definite ({e:?})"))
+    }
+
+    /// u = (I + L_w)x for the positions x (n × 3).
+    fn apply(&self, positions: &[Point3<f64>]) -> Mat<f64> {
+        Mat::from_fn(self.rows.len(), 3, |i, j| {
+            let mut sums = [0.0; 2];
+            for &(k, c) in &self.rows[i] {
+                sums[c as usize] += positions[k][j];
+            }
+            self.diagonal(i) * positions[i][j]
+                - self.weights[0] * sums[0]
+                - self.weights[1] * sums[1]
+        })
     }
 }
 
@@ -390,6 +439,8 @@ mod tests {
             beta2: 0.999,
             clip,
             lr_end_share: 1.0,
+            crease_deg: 0.0,
+            crease_share: 1.0,
         };
         let mut stepper = Stepper::new(&o, &mesh, (0, 1), 1.0, 20).unwrap();
         let mut positions = mesh.positions.clone();
@@ -402,6 +453,67 @@ mod tests {
         }
         let radii: f64 = positions.iter().map(|p| p.coords.norm()).sum();
         10.0 - radii / positions.len() as f64
+    }
+
+    /// A 20 mm box (0.625 mm edges) whose vertices on one of its edges are pulled outward along
+    /// their normals (as silhouettes pull a rounded crease towards the outline) while springs
+    /// (1 per mm) hold every other vertex where it was: after 60 Large Steps steps, the mean
+    /// displacement of the vertices beside that edge (on its two sides, within 2 mm of it) over
+    /// the pulled vertices' mean displacement.
+    fn spill_onto_the_sides(crease_deg: f64) -> f64 {
+        const STEPS: usize = 60;
+        let mesh = crate::mesh::shapes::cuboid(V3::new(20.0, 20.0, 20.0), 32);
+        let normals = mesh.vertex_normals();
+        let pulled: Vec<bool> = (mesh.positions.iter())
+            .map(|p| (p.x - 10.0).abs() < 1e-9 && (p.z - 10.0).abs() < 1e-9)
+            .collect();
+        let o = Optimizer::LargeSteps {
+            lambda: 20.0,
+            lr_edge: 0.3,
+            beta1: 0.9,
+            beta2: 0.999,
+            clip: 0.0,
+            lr_end_share: 1.0,
+            crease_deg,
+            crease_share: 0.25,
+        };
+        let mut stepper = Stepper::new(&o, &mesh, (0, 1), 1.0, 20).unwrap();
+        let mut positions = mesh.positions.clone();
+        for _ in 0..STEPS {
+            let grad: Vec<V3> = (0..positions.len())
+                .map(|i| {
+                    if pulled[i] {
+                        -normals[i]
+                    } else {
+                        positions[i] - mesh.positions[i]
+                    }
+                })
+                .collect();
+            positions = stepper.step(&positions, &grad);
+        }
+        // The vertices beside the edge: on its two sides, within 2 mm of it.
+        let near = |p: &Point3<f64>| {
+            let d = (p.x - 10.0).abs().max((p.z - 10.0).abs());
+            d > 1e-9 && (p.x - 10.0).abs().min((p.z - 10.0).abs()) < 1e-9 && d <= 2.0
+        };
+        let mean_moved = |which: &dyn Fn(usize) -> bool| {
+            let moved: Vec<f64> = (0..positions.len())
+                .filter(|&i| which(i))
+                .map(|i| (positions[i] - mesh.positions[i]).norm())
+                .collect();
+            moved.iter().sum::<f64>() / moved.len() as f64
+        };
+        mean_moved(&|i| near(&mesh.positions[i])) / mean_moved(&|i| pulled[i])
+    }
+
+    /// With the crease vertices' edges at a quarter of λ, a pull on one of a box's edges moves the
+    /// sides beside it less (0.17 of the edge's displacement against 0.51): the edge sharpens
+    /// instead of the sides bulging.
+    #[test]
+    fn creases_under_large_steps_keep_their_pull_off_the_faces_beside_them() {
+        let (plain, crease) = (spill_onto_the_sides(0.0), spill_onto_the_sides(25.0));
+        eprintln!("spill: plain {plain}, crease {crease}");
+        assert!(crease < 0.7 * plain, "{crease} against {plain}");
     }
 
     #[test]
