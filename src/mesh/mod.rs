@@ -163,8 +163,8 @@ impl TriMesh {
     }
 
     /// Per vertex, the largest angle between its normal ([`Self::vertex_normals`]) and the
-    /// normals of its faces, radians: about half the bend of a crease through the vertex, and
-    /// about (edge length / radius) / 2 on a smooth surface. 0 for a vertex that no face of
+    /// normals of its faces, radians: about half the bend of a crease through the vertex, and a
+    /// fraction of (edge length / radius) on a smooth surface. 0 for a vertex that no face of
     /// non-zero area uses.
     pub fn normal_spread(&self) -> Vec<f64> {
         let normals = self.vertex_normals();

@@ -169,6 +169,8 @@ struct LargeStepsSystem {
     rows: Vec<Vec<(usize, bool)>>,
     /// The weights of a plain and of a crease vertex's edge.
     weights: [f64; 2],
+    /// Per vertex, 1 + the weights of its edges.
+    diagonal: Vec<f64>,
 }
 
 impl LargeStepsSystem {
@@ -187,17 +189,19 @@ impl LargeStepsSystem {
             rows[a].push((b, at_crease));
             rows[b].push((a, at_crease));
         }
+        let weights = [lambda, lambda * crease_share];
+        let diagonal = (rows.iter())
+            .map(|row| {
+                let creases = row.iter().filter(|r| r.1).count();
+                let plain = row.len() - creases;
+                1.0 + weights[0] * plain as f64 + weights[1] * creases as f64
+            })
+            .collect();
         Self {
             rows,
-            weights: [lambda, lambda * crease_share],
+            weights,
+            diagonal,
         }
-    }
-
-    /// 1 + the weights of row `i`'s edges.
-    fn diagonal(&self, i: usize) -> f64 {
-        let creases = self.rows[i].iter().filter(|r| r.1).count();
-        let plain = self.rows[i].len() - creases;
-        1.0 + self.weights[0] * plain as f64 + self.weights[1] * creases as f64
     }
 
     /// The Cholesky factor of the matrix.
@@ -205,7 +209,7 @@ impl LargeStepsSystem {
         let n = self.rows.len();
         let mut triplets = Vec::new();
         for (i, row) in self.rows.iter().enumerate() {
-            triplets.push(Triplet::new(i, i, self.diagonal(i)));
+            triplets.push(Triplet::new(i, i, self.diagonal[i]));
             let weight = |c: bool| self.weights[c as usize];
             triplets.extend(row.iter().map(|&(j, c)| Triplet::new(i, j, -weight(c))));
         }
@@ -222,7 +226,7 @@ impl LargeStepsSystem {
             for &(k, c) in &self.rows[i] {
                 sums[c as usize] += positions[k][j];
             }
-            self.diagonal(i) * positions[i][j]
+            self.diagonal[i] * positions[i][j]
                 - self.weights[0] * sums[0]
                 - self.weights[1] * sums[1]
         })
