@@ -809,8 +809,8 @@ mod tests {
         }
     }
 
-    /// The crease weights are off unless a config sets them, which an older config or
-    /// checkpoint without them keeps; out-of-range values are refused by name.
+    /// The crease weights are off in the presets and in a `large_steps` table that omits them
+    /// (an older config's); out-of-range values are refused by name.
     #[test]
     fn crease_weights_are_an_option_checked_by_name() {
         let crease = |s: &Settings| match s.optimizer {

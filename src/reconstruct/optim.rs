@@ -210,8 +210,10 @@ impl LargeStepsSystem {
         let mut triplets = Vec::new();
         for (i, row) in self.rows.iter().enumerate() {
             triplets.push(Triplet::new(i, i, self.diagonal[i]));
-            let weight = |c: bool| self.weights[c as usize];
-            triplets.extend(row.iter().map(|&(j, c)| Triplet::new(i, j, -weight(c))));
+            triplets.extend(
+                row.iter()
+                    .map(|&(j, c)| Triplet::new(i, j, -self.weights[c as usize])),
+            );
         }
         let m = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets)
             .map_err(|e| anyhow!("Large Steps matrix: {e:?}"))?;
