@@ -321,7 +321,8 @@ fn pixel_from_paths(
     let (loss, dr2) = s.robust.apply(mean.norm_squared());
     let gr = mean * (2.0 * dr2 * px.weight / m);
     let side = if paths.len() > 1 { s.footprint } else { 1 };
-    let (bit_loss, bit_grads) = bit_term(s, view, px, &compared, side);
+    let mut bit_grads = ExitGradients::new();
+    let bit_loss = bit_term(s, view, px, &compared, side, &mut bit_grads);
     let start = (out.grad.len(), out.ngrad.len());
     out.ior = 0.0;
     for (k, (f, e)) in compared.iter().enumerate() {
@@ -353,22 +354,23 @@ fn pixel_from_paths(
 type ExitGradients = ArrayVec<Option<(V3, V3)>, MAX_FOOTPRINT_RAYS>;
 
 /// The per-bit term of pixel `px` from its footprint's `paths` (`side` rays per footprint side):
-/// its loss times `bit_weight`, and per path the gradient (times the pixel's weight) with respect
-/// to its exit ray (`None` for a path that misses the monitor plane). Nothing when the term is
-/// off, the pixel has no measured bits or the view no monitor axes.
+/// its loss times `bit_weight`, and into the empty `grads`, per path, the gradient (times the
+/// pixel's weight) with respect to its exit ray (`None` for a path that misses the monitor
+/// plane). Nothing when the term is off, the pixel has no measured bits or the view no monitor
+/// axes. (`grads` is filled in place: the list is too large to move per pixel.)
 fn bit_term(
     s: &RefractionSettings,
     view: &ViewTargets,
     px: &PixelTarget,
     paths: &[(&Forward, Exit)],
     side: u32,
-) -> (f64, ExitGradients) {
-    let mut grads = ExitGradients::new();
+    grads: &mut ExitGradients,
+) -> f64 {
     let Some([au, av]) = view
         .monitor_axes
         .filter(|_| s.bit_weight > 0.0 && px.bits.any())
     else {
-        return (0.0, grads);
+        return 0.0;
     };
     let (du, dv) = (au / au.norm_squared(), av / av.norm_squared());
 
@@ -382,7 +384,7 @@ fn bit_term(
         }
     }
     if !bits::within_cell(&px.bits, &points) {
-        return (0.0, grads);
+        return 0.0;
     }
     let mut g = [Vector2::zeros(); MAX_FOOTPRINT_RAYS];
     let g = &mut g[..points.len()];
@@ -393,7 +395,7 @@ fn bit_term(
         let gq = (du * gk.x + dv * gk.y) * scale;
         grads[k] = Some(screen_adjoint(view, sdist, dn, &paths[k].0.d, &gq));
     }
-    (loss * s.bit_weight, grads)
+    loss * s.bit_weight
 }
 
 /// Where the ray (o, d) meets the monitor plane: the distance along it (mm) and d·ν; `None` when
