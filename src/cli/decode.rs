@@ -59,6 +59,11 @@ pub struct DecodeArgs {
     /// 640 × 480 image).
     #[arg(long = "max-hole", default_value_t = MaskOptions::default().max_hole, value_parser = share)]
     pub max_hole: f64,
+    /// The object has flat faces through which the monitor shows barely shifted (a block, a
+    /// slab): judge the outline's pixels by how much of the background's code they show beyond
+    /// what the glass beside them shows. Not for sharp-edged cut glass (docs/decisions.md).
+    #[arg(long = "flat-faces")]
+    pub flat_faces: bool,
 }
 
 pub fn run(a: &DecodeArgs) -> Result<()> {
@@ -108,6 +113,7 @@ fn options(a: &DecodeArgs) -> DecodeOptions {
             white_drop: a.white_drop.0,
             min_component: a.min_component,
             max_hole: a.max_hole,
+            flat_faces: a.flat_faces,
         },
         bit_depth: a.bit_depth,
     }

@@ -15,6 +15,7 @@ use rayon::prelude::*;
 
 use super::graycode::BitTest;
 use crate::patterns::GrayCode;
+use crate::scan::decoded::MASK_OBJECT;
 
 /// Stripes of at most this half-period (monitor pixels) count as fine.
 pub const FINE_HALF_PERIOD_PX: u32 = 32;
@@ -99,6 +100,63 @@ pub fn background_share(view: &FineDiffs, background: &FineDiffs) -> Vec<f32> {
         .collect()
 }
 
+/// The glass's own share ρ below which [`shares_beside_flat_glass`] leaves a share as it is:
+/// through curved glass the fine code comes from far-off monitor points and ρ is noise about 0.
+pub const FLAT_GLASS_SHARE: f32 = 0.2;
+/// The largest ρ a share is corrected for (the correction divides by 1 − ρ).
+const MAX_GLASS_SHARE: f32 = 0.9;
+/// How far (pixels, each way) the glass beside a pixel is looked for.
+const BESIDE_PX: usize = 2;
+
+/// Each pixel's `share` corrected for the share ρ of the background's fine code that the glass
+/// beside it shows itself: glass seen through flat, nearly parallel faces shows the background's
+/// code barely shifted, so an outline pixel part glass (coverage c) shows (1 − c) + c·ρ of it,
+/// and 1 − c = 1 − (1 − share)/(1 − ρ). ρ is the median share of the interior object pixels of
+/// `mask` (object with four object neighbours) within [`BESIDE_PX`] pixels; where it is below
+/// [`FLAT_GLASS_SHARE`], or fewer than 3 such pixels have a share, the share stays as it is.
+pub fn shares_beside_flat_glass(share: &[f32], mask: &[u8], width: usize) -> Vec<f32> {
+    let height = share.len() / width.max(1);
+    let interior = |i: usize| {
+        let (x, y) = (i % width, i / width);
+        let inside = x > 0 && y > 0 && x + 1 < width && y + 1 < height;
+        inside
+            && [i, i - 1, i + 1, i - width, i + width]
+                .iter()
+                .all(|&j| mask[j] == MASK_OBJECT)
+    };
+    (0..share.len())
+        .into_par_iter()
+        .map(|i| {
+            let s = share[i];
+            if s.is_nan() {
+                return s;
+            }
+            let (x, y) = (i % width, i / width);
+            let mut beside = [0f32; (2 * BESIDE_PX + 1) * (2 * BESIDE_PX + 1)];
+            let mut n = 0;
+            for yy in y.saturating_sub(BESIDE_PX)..(y + BESIDE_PX + 1).min(height) {
+                for xx in x.saturating_sub(BESIDE_PX)..(x + BESIDE_PX + 1).min(width) {
+                    let j = yy * width + xx;
+                    if interior(j) && !share[j].is_nan() {
+                        beside[n] = share[j];
+                        n += 1;
+                    }
+                }
+            }
+            if n < 3 {
+                return s;
+            }
+            let beside = &mut beside[..n];
+            beside.sort_by(f32::total_cmp);
+            let rho = beside[n / 2].min(MAX_GLASS_SHARE);
+            if rho < FLAT_GLASS_SHARE {
+                return s;
+            }
+            (1.0 - (1.0 - s) / (1.0 - rho)).clamp(0.0, 1.0)
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -137,6 +195,42 @@ mod tests {
                 "glass share {c}: background share {share}"
             );
         }
+    }
+
+    /// A 7 × 5 image whose left four columns are glass showing `rho` of the background's code
+    /// and whose column 4 is an outline pixel covered `c` by the glass, beside background.
+    fn outline_beside_glass(rho: f32, c: f32) -> (Vec<f32>, Vec<u8>) {
+        let (w, h) = (7, 5);
+        let mut share = vec![1.0f32; w * h];
+        let mut mask = vec![0u8; w * h];
+        for y in 0..h {
+            for x in 0..5 {
+                let i = y * w + x;
+                mask[i] = MASK_OBJECT;
+                share[i] = if x == 4 { (1.0 - c) + c * rho } else { rho };
+            }
+        }
+        (share, mask)
+    }
+
+    #[test]
+    fn an_outline_pixel_beside_flat_glass_is_judged_by_its_coverage() {
+        let (w, c) = (7, 0.6);
+        let (share, mask) = outline_beside_glass(0.5, c);
+        let corrected = shares_beside_flat_glass(&share, &mask, w);
+        let i = 2 * w + 4;
+        // Uncorrected, the pixel shows 0.7 of the code and would be trimmed as background.
+        assert!(share[i] > 0.5, "{}", share[i]);
+        assert!((corrected[i] - (1.0 - c)).abs() < 1e-6, "{}", corrected[i]);
+        // The background beside keeps its share.
+        assert_eq!(corrected[2 * w + 6], 1.0);
+    }
+
+    #[test]
+    fn shares_beside_curved_glass_stay() {
+        let w = 7;
+        let (share, mask) = outline_beside_glass(FLAT_GLASS_SHARE * 0.5, 0.6);
+        assert_eq!(shares_beside_flat_glass(&share, &mask, w), share);
     }
 
     #[test]

@@ -46,6 +46,11 @@ pub struct MaskOptions {
     pub min_component: f64,
     /// Holes smaller than this share of the image's area are filled.
     pub max_hole: f64,
+    /// The object has flat faces through which the background's code shows barely shifted (a
+    /// block, a slab): the outline's pixels are judged by their coverage after the share of the
+    /// code the glass beside them shows is taken out
+    /// ([`super::coherence::shares_beside_flat_glass`]).
+    pub flat_faces: bool,
 }
 
 impl Default for MaskOptions {
@@ -56,6 +61,7 @@ impl Default for MaskOptions {
             white_drop: None,
             min_component: 1.6e-4,
             max_hole: 1.6e-4,
+            flat_faces: false,
         }
     }
 }

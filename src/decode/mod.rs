@@ -23,7 +23,7 @@ use crate::scan::Scan;
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
-use coherence::{background_share, fine_bits, FineDiffs};
+use coherence::{background_share, fine_bits, shares_beside_flat_glass, FineDiffs};
 use graycode::{bit_contrasts, decode_view, BitTest, PixelDecode};
 use mask::{
     clean, outline_coverage, pixels_at_monitor_edge, raw_mask, BackgroundPixel, MaskOptions,
@@ -433,7 +433,15 @@ impl ViewWriter<'_> {
             (Some(view), Some(background)) => Some(background_share(view, background)),
             _ => None,
         };
-        let (mask, white_drop) = self.mask(cap, share.as_deref())?;
+        let (mut mask, mut white_drop) = self.mask(cap, share.as_deref())?;
+        let share = match share {
+            Some(s) if self.o.mask.flat_faces => {
+                let corrected = shares_beside_flat_glass(&s, &mask, cap.width);
+                (mask, white_drop) = self.mask(cap, Some(&corrected))?;
+                Some(corrected)
+            }
+            other => other,
+        };
         let images = ViewImages::of(cap, &mask, self.code, self.fixed);
         let contrasts = object_contrasts(cap, &mask, &images.monitor);
         let coverage = share
