@@ -116,14 +116,17 @@ const BESIDE_PX: usize = 2;
 /// [`FLAT_GLASS_SHARE`], or fewer than 3 such pixels have a share, the share stays as it is.
 pub fn shares_beside_flat_glass(share: &[f32], mask: &[u8], width: usize) -> Vec<f32> {
     let height = share.len() / width.max(1);
-    let interior = |i: usize| {
-        let (x, y) = (i % width, i / width);
-        let inside = x > 0 && y > 0 && x + 1 < width && y + 1 < height;
-        inside
-            && [i, i - 1, i + 1, i - width, i + width]
-                .iter()
-                .all(|&j| mask[j] == MASK_OBJECT)
-    };
+    let interior: Vec<bool> = (0..share.len())
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i % width, i / width);
+            let inside = x > 0 && y > 0 && x + 1 < width && y + 1 < height;
+            inside
+                && [i, i - 1, i + 1, i - width, i + width]
+                    .iter()
+                    .all(|&j| mask[j] == MASK_OBJECT)
+        })
+        .collect();
     (0..share.len())
         .into_par_iter()
         .map(|i| {
@@ -137,7 +140,7 @@ pub fn shares_beside_flat_glass(share: &[f32], mask: &[u8], width: usize) -> Vec
             for yy in y.saturating_sub(BESIDE_PX)..(y + BESIDE_PX + 1).min(height) {
                 for xx in x.saturating_sub(BESIDE_PX)..(x + BESIDE_PX + 1).min(width) {
                     let j = yy * width + xx;
-                    if interior(j) && !share[j].is_nan() {
+                    if interior[j] && !share[j].is_nan() {
                         beside[n] = share[j];
                         n += 1;
                     }

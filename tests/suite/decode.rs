@@ -3,6 +3,7 @@
 use crate::common::{fine_monitor_ellipsoid, glasscan};
 use glasscan::decode::graycode::{decode_view, BitTest};
 use glasscan::mesh::shapes::{cuboid, ellipsoid};
+use glasscan::mesh::TriMesh;
 use glasscan::patterns::GrayCode;
 use glasscan::simulate::{simulate, SimulateOptions, Transport};
 use glasscan::trace::path::NormalModel;
@@ -363,24 +364,34 @@ fn captured_ellipsoid(
     views: usize,
     transport: Transport,
 ) -> std::path::PathBuf {
-    ellipsoid_captures(
-        dir,
-        SimulateOptions {
-            views,
-            spp: 4,
-            noise: 2.0,
-            blur_px: 0.7,
-            transport,
-            ..Default::default()
-        },
-    )
+    ellipsoid_captures(dir, noisy_blurred_capture(views, transport))
 }
 
-/// A captured scan of a 60 × 44 × 36 mm ellipsoid on a small rig (320×240 camera, 480×300
-/// monitor of 0.8 mm pixels) with `capture`'s views, samples, noise, blur and transport, in
-/// `dir/scan`.
+/// `views` views of 4 samples per pixel, noise σ = 2, blur 0.7 px, with light transport
+/// `transport`.
+fn noisy_blurred_capture(views: usize, transport: Transport) -> SimulateOptions {
+    SimulateOptions {
+        views,
+        spp: 4,
+        noise: 2.0,
+        blur_px: 0.7,
+        transport,
+        ..Default::default()
+    }
+}
+
+/// A captured scan of a 60 × 44 × 36 mm ellipsoid on [the small rig](small_rig_captures) with
+/// `capture`'s views, samples, noise, blur and transport, in `dir/scan`.
 fn ellipsoid_captures(dir: &std::path::Path, capture: SimulateOptions) -> std::path::PathBuf {
     let scan = dir.join("scan");
+    let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
+    small_rig_captures(&shape, &scan, capture);
+    scan
+}
+
+/// Simulates `shape` into `scan` on a small rig (320×240 camera, 480×300 monitor of 0.8 mm
+/// pixels) with `capture`'s views, samples, noise, blur, transport and normals.
+fn small_rig_captures(shape: &TriMesh, scan: &std::path::Path, capture: SimulateOptions) {
     let opts = SimulateOptions {
         width: 320,
         height: 240,
@@ -389,9 +400,7 @@ fn ellipsoid_captures(dir: &std::path::Path, capture: SimulateOptions) -> std::p
         pitch_mm: 0.8,
         ..capture
     };
-    let shape = ellipsoid(Vector3::new(30.0, 22.0, 18.0), 4);
-    simulate(&shape, &scan, &opts, |_| ()).unwrap();
-    scan
+    simulate(shape, scan, &opts, |_| ()).unwrap();
 }
 
 /// Pixels where `a` is object and `b` is not, for two 8-bit masks of the same size.
@@ -793,32 +802,14 @@ fn flat_faces_moves_a_slabs_outline_out_and_leaves_a_curved_ones() {
         let overall = out.lines().find(|l| l.starts_with("overall:")).unwrap();
         overall_figure(overall, "by area against the true coverage ")
     };
-    let capture = SimulateOptions {
-        views: 2,
-        spp: 4,
-        noise: 2.0,
-        blur_px: 0.7,
-        transport: Transport::Physical,
-        width: 320,
-        height: 240,
-        screen_width: 480,
-        screen_height: 300,
-        pitch_mm: 0.8,
-        ..Default::default()
-    };
     let dir = tempfile::tempdir().unwrap();
     let slab = dir.path().join("slab");
-    let opts = SimulateOptions {
+    let capture = noisy_blurred_capture(2, Transport::Physical);
+    let faceted = SimulateOptions {
         normals: NormalModel::Face,
         ..capture.clone()
     };
-    simulate(
-        &cuboid(Vector3::new(60.0, 40.0, 20.0), 8),
-        &slab,
-        &opts,
-        |_| (),
-    )
-    .unwrap();
+    small_rig_captures(&cuboid(Vector3::new(60.0, 40.0, 20.0), 8), &slab, faceted);
     let (plain, flat) = (by_area(&slab, false), by_area(&slab, true));
     eprintln!("slab's outline by area: {plain:+.3} px, with --flat-faces {flat:+.3} px");
     assert!(
