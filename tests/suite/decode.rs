@@ -350,6 +350,20 @@ fn small_ellipsoid_scan(dir: &std::path::Path, screen_height: u32) -> (std::path
     (scan, report.monitor_covers_object)
 }
 
+/// `decode --compare-ground-truth` (with `extra` arguments) on `scan`, which must succeed: its
+/// overall line.
+fn compared_overall(scan: &std::path::Path, extra: &[&str]) -> String {
+    let mut args = vec!["decode", scan.to_str().unwrap(), "--compare-ground-truth"];
+    args.extend(extra);
+    let o = glasscan(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = String::from_utf8_lossy(&o.stdout);
+    out.lines()
+        .find(|l| l.starts_with("overall:"))
+        .unwrap()
+        .to_string()
+}
+
 /// The number after `after` in `decode --compare-ground-truth`'s overall line.
 fn overall_figure(overall: &str, after: &str) -> f64 {
     let rest = &overall[overall.find(after).unwrap() + after.len()..];
@@ -453,10 +467,7 @@ fn silhouettes_of_physical_captures_keep_their_outline() {
     // outline lies 0.6 px inside the true one, IoU 0.983; with the code rule −0.04 px, 0.996.)
     let dir = tempfile::tempdir().unwrap();
     let scan = captured_ellipsoid(dir.path(), 4, Transport::Physical);
-    let o = glasscan(&["decode", scan.to_str().unwrap(), "--compare-ground-truth"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let out = String::from_utf8_lossy(&o.stdout);
-    let overall = out.lines().find(|l| l.starts_with("overall:")).unwrap();
+    let overall = &compared_overall(&scan, &[]);
     let iou = overall_figure(overall, "mean mask IoU ");
     let offset = overall_figure(overall, "decoded outline ");
     // Against the simulator's true coverage (measured −0.022 px).
@@ -495,10 +506,7 @@ fn the_monitor_seen_directly_decodes_where_the_camera_looks() {
         ..Default::default()
     };
     let scan = fine_monitor_ellipsoid(dir.path(), opts);
-    let o = glasscan(&["decode", scan.to_str().unwrap(), "--compare-ground-truth"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let out = String::from_utf8_lossy(&o.stdout);
-    let overall = out.lines().find(|l| l.starts_with("overall:")).unwrap();
+    let overall = &compared_overall(&scan, &[]);
     eprintln!("{overall}");
     let after = "the monitor seen directly decoded at (";
     let rest = &overall[overall.find(after).unwrap() + after.len()..];
@@ -792,15 +800,9 @@ fn flat_faces_moves_a_slabs_outline_out_and_leaves_a_curved_ones() {
     // nothing moves. (Measured: the slab −4.23 px, with the flag −0.63; the ellipsoid +0.009 px
     // either way.)
     let by_area = |scan: &std::path::Path, flag: bool| {
-        let mut args = vec!["decode", scan.to_str().unwrap(), "--compare-ground-truth"];
-        if flag {
-            args.push("--flat-faces");
-        }
-        let o = glasscan(&args);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let out = String::from_utf8_lossy(&o.stdout).into_owned();
-        let overall = out.lines().find(|l| l.starts_with("overall:")).unwrap();
-        overall_figure(overall, "by area against the true coverage ")
+        let extra: &[&str] = if flag { &["--flat-faces"] } else { &[] };
+        let overall = compared_overall(scan, extra);
+        overall_figure(&overall, "by area against the true coverage ")
     };
     let dir = tempfile::tempdir().unwrap();
     let slab = dir.path().join("slab");
