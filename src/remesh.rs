@@ -237,6 +237,13 @@ impl<'a> Reference<'a> {
     }
 }
 
+/// Per vertex of `mesh`, the target edge length (mm) of the adaptive mode with sizing `a` and
+/// largest edge `h_max` (mm), before any per-vertex bound: what the surface's curvature alone
+/// asks for there.
+pub fn curvature_edges(mesh: &TriMesh, h_max: f64, a: AdaptiveSizing) -> Vec<f64> {
+    curvature_sizing(mesh, &mesh.vertex_normals(), h_max, a)
+}
+
 /// Per-vertex target edge lengths from the largest normal curvature along the vertex's edges,
 /// κ ≈ |n_a − n_b| / |p_a − p_b|.
 fn curvature_sizing(

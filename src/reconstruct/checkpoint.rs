@@ -142,6 +142,10 @@ pub struct Checkpoint {
     /// The membrane term judged on the first stage after the warm-up, once it has ended.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub membrane: Option<MembraneVerdict>,
+    /// Whether the surface is flat-faced or curved, judged before the first stage whose
+    /// smoothing is raised (with `smoothing_edge_curved` set).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub surface: Option<super::flatness::SurfaceVerdict>,
     /// What the run's inputs were read from ([`fingerprint`]).
     #[serde(default)]
     pub inputs: super::fingerprint::Fingerprint,
@@ -161,6 +165,15 @@ pub struct Checkpoint {
 }
 
 impl Checkpoint {
+    /// Stage `s`'s settings and its index in its schedule ([`Settings::stage`]), with the
+    /// smoothing the surface verdict chose.
+    pub fn stage_settings(&self, s: usize) -> (super::config::Settings, usize) {
+        match &self.surface {
+            Some(v) if v.curved => self.settings.with_curved_smoothing().stage(s),
+            _ => self.settings.stage(s),
+        }
+    }
+
     /// The refractive index the next stage runs at.
     pub fn index(&self, inputs: &super::Inputs) -> f64 {
         (self.ior_estimate.or(inputs.ior_start)).unwrap_or_else(|| inputs.ior.nominal())
@@ -229,6 +242,7 @@ impl Checkpoint {
             stages: Vec::new(),
             warm_up: None,
             membrane: None,
+            surface: None,
             inputs: Default::default(),
             ior: None,
             ior_estimate: None,

@@ -191,6 +191,12 @@ pub struct Settings {
     /// whose dihedral angles on a given bend shrink with the edge. 0: the same in every stage.
     #[serde(default)]
     pub smoothing_edge: f64,
+    /// `smoothing_edge` for a curved surface: before the first stage `smoothing_edge` raises,
+    /// a surface less than a quarter of whose area is flat at that stage's edge smooths to this
+    /// share of the diagonal instead ([`crate::reconstruct::flatness`]). 0: `smoothing_edge`
+    /// on every surface.
+    #[serde(default)]
+    pub smoothing_edge_curved: f64,
     /// Edges that follow the surface: in the stages after the warm-up, the remesh gives each
     /// place the edge whose chord deviates from the current surface's curvature by this share
     /// of the stage's edge, between the stage's edge (where the surface bends) and
@@ -398,6 +404,7 @@ impl Settings {
             average_share: 0.5,
             weight_membrane: 10.0,
             smoothing_edge: 0.0,
+            smoothing_edge_curved: 0.0,
             sizing_error: 0.0,
             sizing_max_edge: 1.0,
             sizing_pull: 0.0,
@@ -435,9 +442,11 @@ impl Settings {
             // (docs/decisions.md#accurate-chooses-its-footprint-from-the-camera-pixel-at-the-object).
             footprint: AUTO_FOOTPRINT,
             // Its stages finer than about `balanced`'s second (1/155 of the diagonal) smooth
-            // as far in millimetres as that one
-            // (docs/decisions.md#accurates-fine-stages-regularisers-that-reach-as-far-in-millimetres).
+            // as far in millimetres as that one on a flat-faced surface, as far as 1/250 on a
+            // curved one
+            // (docs/decisions.md#accurates-fine-stages-smoothing-that-follows-the-surface).
             smoothing_edge: 0.0065,
+            smoothing_edge_curved: 0.004,
             // Its fine stages with closer rays stall at 5 MP
             // (docs/decisions.md#rays-that-follow-the-mesh).
             ray_edge_spacing: 0.0,
@@ -598,6 +607,12 @@ impl Settings {
             return bad(
                 "smoothing_edge",
                 "must lie in [0, 1] (a share of the diagonal; 0: off)",
+            );
+        }
+        if !(0.0..=1.0).contains(&self.smoothing_edge_curved) {
+            return bad(
+                "smoothing_edge_curved",
+                "must lie in [0, 1] (a share of the diagonal; 0: smoothing_edge)",
             );
         }
         Ok(())
@@ -763,6 +778,26 @@ impl Settings {
     fn smoothing_gain(&self, s: usize) -> f64 {
         (self.smoothing_edge / self.edge_share(s)).powi(2).max(1.0)
     }
+
+    /// Whether stage `g` (counting the warm-up) is the first whose smoothing is raised and the
+    /// settings choose it by the surface (`smoothing_edge_curved` set): where the run judges
+    /// the surface.
+    pub fn judges_surface_before(&self, g: usize) -> bool {
+        let raised =
+            |g: usize| g >= self.warmup_stages && self.smoothing_gain(g - self.warmup_stages) > 1.0;
+        self.smoothing_edge_curved > 0.0 && raised(g) && (g == 0 || !raised(g - 1))
+    }
+
+    /// These settings with a curved surface's smoothing (`smoothing_edge_curved`, if set).
+    pub fn with_curved_smoothing(&self) -> Settings {
+        Settings {
+            smoothing_edge: match self.smoothing_edge_curved {
+                e if e > 0.0 => e,
+                _ => self.smoothing_edge,
+            },
+            ..self.clone()
+        }
+    }
 }
 
 #[cfg(test)]
@@ -882,8 +917,29 @@ mod tests {
         let last = lambda_of(&raised, w + plain.stages - 1);
         assert!((last - 20.0 * (350.0f64 * 0.0065).powi(2)).abs() < 1e-9);
         assert_eq!(lambda_of(&raised, w + 1), 20.0);
-        assert!(plain
+        assert!((plain.clone())
             .with_overrides("smoothing_edge = -1\n")
+            .unwrap()
+            .check()
+            .is_err());
+        // A curved surface's stages smooth to `smoothing_edge_curved`: less in every raised
+        // stage, the same before; the surface is judged before the first raised stage only.
+        let curved = raised.with_curved_smoothing();
+        assert_eq!(curved.smoothing_edge, raised.smoothing_edge_curved);
+        let first_raised = (0..raised.total_stages())
+            .find(|&g| raised.judges_surface_before(g))
+            .expect("accurate judges the surface");
+        for g in 0..raised.total_stages() {
+            let (c, r) = (lambda_of(&curved, g), lambda_of(&raised, g));
+            match g >= first_raised {
+                true => assert!(c < r, "stage {g}: {c} against {r}"),
+                false => assert!(c == r || c.is_nan() && r.is_nan(), "stage {g}"),
+            }
+            assert_eq!(raised.judges_surface_before(g), g == first_raised);
+            assert!(!plain.judges_surface_before(g), "no raised stage");
+        }
+        assert!(raised
+            .with_overrides("smoothing_edge_curved = 2\n")
             .unwrap()
             .check()
             .is_err());

@@ -9,6 +9,7 @@ pub mod confidence;
 pub mod config;
 pub mod coverage;
 pub mod fingerprint;
+pub mod flatness;
 pub mod index;
 pub mod inputs;
 mod judges;
@@ -193,6 +194,7 @@ fn begin_run(
         stages: Vec::new(),
         warm_up: None,
         membrane: None,
+        surface: None,
         inputs: inputs.fingerprint.clone(),
         ior: Some(inputs.ior),
         ior_estimate: None,

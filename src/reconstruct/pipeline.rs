@@ -340,6 +340,7 @@ fn write_results(out: &Path, finished: &Finished, surface: &MeshSurface, r: &Rep
         "stages": checkpoint.stages,
         "warm_up": checkpoint.warm_up,
         "membrane": checkpoint.membrane,
+        "surface": checkpoint.surface,
         "result_stage": r.result_stage + 1,
         "ior": r.index,
         "confidence": summary,

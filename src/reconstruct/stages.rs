@@ -3,6 +3,7 @@
 
 use super::config::Settings;
 use super::coverage::Coverage;
+use super::flatness::judge_surface;
 use super::optim::{IndexStepper, Stepper, TailMean};
 use super::pull::data_edge_bounds;
 use super::validation::{validate_mesh, Split, ValidationRecord};
@@ -77,6 +78,36 @@ fn index_free(inputs: &Inputs, settings: &Settings, s: usize) -> Option<(f64, f6
     (inputs.ior.is_auto() && s >= settings.warmup_stages).then(|| inputs.ior.range())
 }
 
+/// Before the first stage whose smoothing is raised (with `smoothing_edge_curved` set), judges
+/// whether `mesh` (the stage's start) is flat-faced or curved at that stage's edge, notes it and
+/// records it in `checkpoint`, whose later stages smooth accordingly
+/// ([`Checkpoint::stage_settings`]); nothing once judged.
+fn judge_surface_before(
+    checkpoint: &mut Checkpoint,
+    mesh: &TriMesh,
+    s: usize,
+    progress: &dyn Progress,
+) {
+    if checkpoint.surface.is_some() || !checkpoint.settings.judges_surface_before(s) {
+        return;
+    }
+    let (phase, k) = checkpoint.settings.stage(s);
+    let edge_mm = stage_edge_mm(checkpoint, &phase, s, k);
+    let verdict = judge_surface(mesh, s, edge_mm, &phase);
+    let settings = &checkpoint.settings;
+    let (kind, edge) = match verdict.curved {
+        true => ("curved", settings.smoothing_edge_curved),
+        false => ("flat-faced", settings.smoothing_edge),
+    };
+    progress.note(&format!(
+        "{:.0} % of the surface is flat at {edge_mm:.2} mm edges: {kind}, the stages from {} on smooth as far as at 1/{:.0} of the diagonal",
+        100.0 * verdict.flat_share,
+        s + 1,
+        1.0 / edge
+    ));
+    checkpoint.surface = Some(verdict);
+}
+
 /// Remeshes `mesh` to the next stage's edge length (on a graded stage, shorter where the data
 /// keeps pulling: [`data_edge_bounds`]), runs that stage on the views `split` fits (an unknown
 /// index with the shape: [`index_free`]) and measures the result on those it holds out, at the
@@ -90,7 +121,8 @@ pub(super) fn run_next_stage(
 ) -> Result<TriMesh> {
     let s = checkpoint.stages_done;
     let t0 = Instant::now();
-    let (mut phase, k) = checkpoint.settings.stage(s);
+    judge_surface_before(checkpoint, mesh, s, progress);
+    let (mut phase, k) = checkpoint.stage_settings(s);
     if checkpoint.membrane.as_ref().is_some_and(|m| !m.kept) {
         phase.weight_membrane = 0.0;
     }
