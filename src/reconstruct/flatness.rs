@@ -107,4 +107,32 @@ mod tests {
         };
         assert_eq!(flat_share(&block, edge, &uniform), 0.0);
     }
+
+    #[test]
+    fn a_curved_verdict_smooths_only_the_raised_stages_less() {
+        let mut checkpoint = crate::reconstruct::Checkpoint::example(None);
+        checkpoint.settings = Settings::preset(Preset::Accurate);
+        let total = checkpoint.settings.total_stages();
+        let first = (0..total)
+            .find(|&g| checkpoint.settings.judges_surface_before(g))
+            .expect("accurate judges the surface");
+        let smoothing = |c: &crate::reconstruct::Checkpoint| -> Vec<f64> {
+            (0..total)
+                .map(|g| c.stage_settings(g).0.weight_smoothness)
+                .collect()
+        };
+        let flat = smoothing(&checkpoint);
+        checkpoint.surface = Some(SurfaceVerdict {
+            stage: first,
+            flat_share: 0.0,
+            curved: true,
+        });
+        let curved = smoothing(&checkpoint);
+        for g in 0..total {
+            match g >= first {
+                true => assert!(curved[g] < flat[g], "stage {g}: {curved:?} {flat:?}"),
+                false => assert_eq!(curved[g], flat[g], "stage {g}"),
+            }
+        }
+    }
 }
