@@ -523,6 +523,7 @@ impl Settings {
     /// Checks ranges; the message names the setting.
     pub fn check(&self) -> Result<(), String> {
         self.check_schedule()?;
+        self.check_sizing()?;
         self.check_terms()?;
         check_optimizer(&self.optimizer)
     }
@@ -585,6 +586,12 @@ impl Settings {
         if !(0.0..1.0).contains(&self.average_share) {
             return bad("average_share", "must lie in [0, 1)");
         }
+        Ok(())
+    }
+
+    /// The graded stages' sizing field and `accurate`'s raised smoothing.
+    fn check_sizing(&self) -> Result<(), String> {
+        let bad = |k: &str, why: &str| Err(format!("setting {k}: {why}"));
         if !(0.0..=1.0).contains(&self.sizing_error) {
             return bad(
                 "sizing_error",
