@@ -79,6 +79,7 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         bar.inc(1);
     })?;
     bar.finish_and_clear();
+    let flat_faces_hint = outcome.flat_faces_suggested(a.flat_faces);
     let summaries = outcome.views;
     let object: usize = summaries.iter().map(|s| s.object_pixels).sum();
     let decoded: f64 = summaries
@@ -93,6 +94,12 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         100.0 * decoded / object.max(1) as f64,
         summaries.iter().filter(|s| s.warning.is_some()).count()
     );
+    if let Some(share) = flat_faces_hint {
+        outln!(
+            "hint: through {:.0} % of the object's inside the monitor shows barely shifted (flat, nearly parallel faces): if the object has no sharp edges (a block, a slab), decode again with --flat-faces, whose outlines lie closer to the truth there (docs/decisions.md#outlines-beside-flat-glass)",
+            100.0 * share
+        );
+    }
     print_blur(&scan, outcome.blur)?;
     if a.compare {
         print_comparison(&scan, &summaries)?;

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 
 use super::graycode::BitTest;
 use crate::patterns::GrayCode;
-use crate::scan::decoded::MASK_OBJECT;
+use crate::scan::decoded::{FlatGlass, ViewSummary, MASK_OBJECT};
 
 /// Stripes of at most this half-period (monitor pixels) count as fine.
 pub const FINE_HALF_PERIOD_PX: u32 = 32;
@@ -116,17 +116,7 @@ const BESIDE_PX: usize = 2;
 /// [`FLAT_GLASS_SHARE`], or fewer than 3 such pixels have a share, the share stays as it is.
 pub fn shares_beside_flat_glass(share: &[f32], mask: &[u8], width: usize) -> Vec<f32> {
     let height = share.len() / width.max(1);
-    let interior: Vec<bool> = (0..share.len())
-        .into_par_iter()
-        .map(|i| {
-            let (x, y) = (i % width, i / width);
-            let inside = x > 0 && y > 0 && x + 1 < width && y + 1 < height;
-            inside
-                && [i, i - 1, i + 1, i - width, i + width]
-                    .iter()
-                    .all(|&j| mask[j] == MASK_OBJECT)
-        })
-        .collect();
+    let interior = interior_object_pixels(mask, width);
     (0..share.len())
         .into_par_iter()
         .map(|i| {
@@ -158,6 +148,52 @@ pub fn shares_beside_flat_glass(share: &[f32], mask: &[u8], width: usize) -> Vec
             (1.0 - (1.0 - s) / (1.0 - rho)).clamp(0.0, 1.0)
         })
         .collect()
+}
+
+/// From this share of the object's inside showing the monitor barely shifted ([`FlatGlass`]) a
+/// scan is flat-faced: the bench's physical 640×480 scans (glasscan's simulator) measure 0.48 on
+/// the block and 0.66 on the prism, 0.055–0.064 on the pig, the dog and the horse.
+pub const FLAT_FACED_SCAN_SHARE: f64 = 0.25;
+
+/// The share of the interior object pixels of `views` (those with a share of the background's
+/// code) through which the monitor shows barely shifted; `None` where no view has any.
+pub fn flat_glass_share(views: &[ViewSummary]) -> Option<f64> {
+    let counts = views.iter().filter_map(|v| v.flat_glass);
+    let total = counts.fold(FlatGlass::default(), |t, c| FlatGlass {
+        interior: t.interior + c.interior,
+        flat: t.flat + c.flat,
+    });
+    (total.interior > 0).then(|| total.flat as f64 / total.interior as f64)
+}
+
+/// Per pixel of `mask` (`width` wide), whether it and its four neighbours are object pixels.
+fn interior_object_pixels(mask: &[u8], width: usize) -> Vec<bool> {
+    let height = mask.len() / width.max(1);
+    (0..mask.len())
+        .into_par_iter()
+        .map(|i| {
+            let (x, y) = (i % width, i / width);
+            let inside = x > 0 && y > 0 && x + 1 < width && y + 1 < height;
+            inside
+                && [i, i - 1, i + 1, i - width, i + width]
+                    .iter()
+                    .all(|&j| mask[j] == MASK_OBJECT)
+        })
+        .collect()
+}
+
+/// The interior object pixels of `mask` with a `share`, and those whose share is at least
+/// [`FLAT_GLASS_SHARE`].
+pub fn flat_glass_pixels(share: &[f32], mask: &[u8], width: usize) -> FlatGlass {
+    let interior = interior_object_pixels(mask, width);
+    let known = share
+        .iter()
+        .zip(&interior)
+        .filter(|(s, &inside)| inside && !s.is_nan());
+    known.fold(FlatGlass::default(), |c, (&s, _)| FlatGlass {
+        interior: c.interior + 1,
+        flat: c.flat + usize::from(s >= FLAT_GLASS_SHARE),
+    })
 }
 
 #[cfg(test)]
@@ -234,6 +270,58 @@ mod tests {
         let w = 7;
         let (share, mask) = outline_beside_glass(FLAT_GLASS_SHARE * 0.5, 0.6);
         assert_eq!(shares_beside_flat_glass(&share, &mask, w), share);
+    }
+
+    #[test]
+    fn flat_glass_counts_the_inside_that_shows_the_background_code() {
+        // A 6 × 5 object in an 8 × 7 image: its 4 × 3 interior pixels count, the rim does not.
+        let (w, h) = (8, 7);
+        let mask: Vec<u8> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if (1..7).contains(&x) && (1..6).contains(&y) {
+                    MASK_OBJECT
+                } else {
+                    0
+                }
+            })
+            .collect();
+        // Interior shares by column x = 2..=5: two flat columns, one below the share, one
+        // undecoded; the rim and the background show the code whole.
+        let share: Vec<f32> = (0..w * h)
+            .map(|i| match i % w {
+                2 => FLAT_GLASS_SHARE,
+                3 => 0.9,
+                4 => FLAT_GLASS_SHARE * 0.5,
+                5 => f32::NAN,
+                _ => 1.0,
+            })
+            .collect();
+        let counts = flat_glass_pixels(&share, &mask, w);
+        assert_eq!(
+            counts,
+            FlatGlass {
+                interior: 9,
+                flat: 6
+            }
+        );
+        let view = |flat_glass| ViewSummary {
+            view: 0,
+            object_pixels: 30,
+            decoded_share: 1.0,
+            complete_share: 1.0,
+            white_drop: None,
+            monitor_edge_px: 0,
+            warning: None,
+            flat_glass,
+        };
+        let curved = FlatGlass {
+            interior: 91,
+            flat: 4,
+        };
+        let share = flat_glass_share(&[view(Some(counts)), view(None), view(Some(curved))]);
+        assert_eq!(share, Some(0.1));
+        assert_eq!(flat_glass_share(&[view(None)]), None);
     }
 
     #[test]

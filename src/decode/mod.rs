@@ -23,7 +23,10 @@ use crate::scan::Scan;
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
-use coherence::{background_share, fine_bits, shares_beside_flat_glass, FineDiffs};
+use coherence::{
+    background_share, fine_bits, flat_glass_pixels, flat_glass_share, shares_beside_flat_glass,
+    FineDiffs, FLAT_FACED_SCAN_SHARE,
+};
 use graycode::{bit_contrasts, decode_view, BitTest, PixelDecode};
 use mask::{
     clean, outline_coverage, pixels_at_monitor_edge, raw_mask, BackgroundPixel, MaskOptions,
@@ -290,6 +293,7 @@ pub fn decode_scan(
                 white_drop: None,
                 monitor_edge_px: 0,
                 warning: Some(why),
+                flat_glass: None,
             },
             None => writer.write(k, &cap)?,
         };
@@ -313,6 +317,17 @@ pub struct DecodeOutcome {
     /// The camera's blur measured on the background captures, or why it could not be; `None`
     /// without them.
     pub blur: Option<Result<form::MeasuredBlur, blur::Unmeasured>>,
+}
+
+impl DecodeOutcome {
+    /// The share of the object's inside through which the monitor shows barely shifted, when it
+    /// marks the object flat-faced ([`FLAT_FACED_SCAN_SHARE`]) and the decode did not already
+    /// judge the outlines for flat faces (`flat_faces`): such outlines lie closer to the truth
+    /// with [`MaskOptions::flat_faces`], unless the object has sharp edges.
+    pub fn flat_faces_suggested(&self, flat_faces: bool) -> Option<f64> {
+        let share = flat_glass_share(&self.views)?;
+        (!flat_faces && share >= FLAT_FACED_SCAN_SHARE).then_some(share)
+    }
 }
 
 /// Refuses a decode whose images would not fit the memory budget: per camera pixel it holds the
@@ -434,6 +449,9 @@ impl ViewWriter<'_> {
             _ => None,
         };
         let (mut mask, mut white_drop) = self.mask(cap, share.as_deref())?;
+        let flat_glass = share
+            .as_deref()
+            .map(|s| flat_glass_pixels(s, &mask, cap.width));
         let share = match share {
             Some(s) if self.o.mask.flat_faces => {
                 let corrected = shares_beside_flat_glass(&s, &mask, cap.width);
@@ -465,6 +483,7 @@ impl ViewWriter<'_> {
             white_drop: white_drop.map(f64::from),
             monitor_edge_px: edge,
             warning: view_warning(object, edge),
+            flat_glass,
         })
     }
 

@@ -414,6 +414,7 @@ fn import_view(
         white_drop: None,
         monitor_edge_px: 0,
         warning: None,
+        flat_glass: None,
     };
     Ok(ImportedView {
         pose,

@@ -62,6 +62,19 @@ pub struct ViewSummary {
     #[serde(default)]
     pub monitor_edge_px: usize,
     pub warning: Option<String>,
+    /// How much of the object's inside shows the monitor barely shifted, where a background was
+    /// captured (`decode`'s flat-faces hint).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flat_glass: Option<FlatGlass>,
+}
+
+/// Interior object pixels (object with four object neighbours) whose share of the background's
+/// fine code is known, and those of them that show at least the flat-glass share of it: through
+/// flat, nearly parallel faces the monitor is seen barely shifted.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FlatGlass {
+    pub interior: usize,
+    pub flat: usize,
 }
 
 /// The decoded monitor point of one camera pixel: coordinates and cell widths, monitor pixels.

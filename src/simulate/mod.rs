@@ -595,6 +595,7 @@ fn write_exact_decoded(
         white_drop: None,
         monitor_edge_px: 0,
         warning: (object == 0).then(|| "no object pixel: the object is out of view".to_string()),
+        flat_glass: None,
     })
 }
 
