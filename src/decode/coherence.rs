@@ -111,12 +111,11 @@ const BESIDE_PX: usize = 2;
 /// Each pixel's `share` corrected for the share ρ of the background's fine code that the glass
 /// beside it shows itself: glass seen through flat, nearly parallel faces shows the background's
 /// code barely shifted, so an outline pixel part glass (coverage c) shows (1 − c) + c·ρ of it,
-/// and 1 − c = 1 − (1 − share)/(1 − ρ). ρ is the median share of the interior object pixels of
-/// `mask` (object with four object neighbours) within [`BESIDE_PX`] pixels; where it is below
-/// [`FLAT_GLASS_SHARE`], or fewer than 3 such pixels have a share, the share stays as it is.
-pub fn shares_beside_flat_glass(share: &[f32], mask: &[u8], width: usize) -> Vec<f32> {
+/// and 1 − c = 1 − (1 − share)/(1 − ρ). ρ is the median share of the `interior` object pixels
+/// ([`interior_object_pixels`]; images `width` wide) within [`BESIDE_PX`] pixels; where it is
+/// below [`FLAT_GLASS_SHARE`], or fewer than 3 such pixels have a share, the share stays as it is.
+pub fn shares_beside_flat_glass(share: &[f32], interior: &[bool], width: usize) -> Vec<f32> {
     let height = share.len() / width.max(1);
-    let interior = interior_object_pixels(mask, width);
     (0..share.len())
         .into_par_iter()
         .map(|i| {
@@ -167,7 +166,7 @@ pub fn flat_glass_share(views: &[ViewSummary]) -> Option<f64> {
 }
 
 /// Per pixel of `mask` (`width` wide), whether it and its four neighbours are object pixels.
-fn interior_object_pixels(mask: &[u8], width: usize) -> Vec<bool> {
+pub fn interior_object_pixels(mask: &[u8], width: usize) -> Vec<bool> {
     let height = mask.len() / width.max(1);
     (0..mask.len())
         .into_par_iter()
@@ -182,13 +181,12 @@ fn interior_object_pixels(mask: &[u8], width: usize) -> Vec<bool> {
         .collect()
 }
 
-/// The interior object pixels of `mask` with a `share`, and those whose share is at least
-/// [`FLAT_GLASS_SHARE`].
-pub fn flat_glass_pixels(share: &[f32], mask: &[u8], width: usize) -> FlatGlass {
-    let interior = interior_object_pixels(mask, width);
+/// The `interior` object pixels ([`interior_object_pixels`]) with a `share`, and those whose
+/// share is at least [`FLAT_GLASS_SHARE`].
+pub fn flat_glass_pixels(share: &[f32], interior: &[bool]) -> FlatGlass {
     let known = share
         .iter()
-        .zip(&interior)
+        .zip(interior)
         .filter(|(s, &inside)| inside && !s.is_nan());
     known.fold(FlatGlass::default(), |c, (&s, _)| FlatGlass {
         interior: c.interior + 1,
@@ -256,7 +254,7 @@ mod tests {
     fn an_outline_pixel_beside_flat_glass_is_judged_by_its_coverage() {
         let (w, c) = (7, 0.6);
         let (share, mask) = outline_beside_glass(0.5, c);
-        let corrected = shares_beside_flat_glass(&share, &mask, w);
+        let corrected = shares_beside_flat_glass(&share, &interior_object_pixels(&mask, w), w);
         let i = 2 * w + 4;
         // Uncorrected, the pixel shows 0.7 of the code and would be trimmed as background.
         assert!(share[i] > 0.5, "{}", share[i]);
@@ -269,7 +267,8 @@ mod tests {
     fn shares_beside_curved_glass_stay() {
         let w = 7;
         let (share, mask) = outline_beside_glass(FLAT_GLASS_SHARE * 0.5, 0.6);
-        assert_eq!(shares_beside_flat_glass(&share, &mask, w), share);
+        let interior = interior_object_pixels(&mask, w);
+        assert_eq!(shares_beside_flat_glass(&share, &interior, w), share);
     }
 
     #[test]
@@ -297,7 +296,7 @@ mod tests {
                 _ => 1.0,
             })
             .collect();
-        let counts = flat_glass_pixels(&share, &mask, w);
+        let counts = flat_glass_pixels(&share, &interior_object_pixels(&mask, w));
         assert_eq!(
             counts,
             FlatGlass {

@@ -24,8 +24,8 @@ use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::folder::StagedFolder;
 use crate::util::image::write_pixels;
 use coherence::{
-    background_share, fine_bits, flat_glass_pixels, flat_glass_share, shares_beside_flat_glass,
-    FineDiffs, FLAT_FACED_SCAN_SHARE,
+    background_share, fine_bits, flat_glass_pixels, flat_glass_share, interior_object_pixels,
+    shares_beside_flat_glass, FineDiffs, FLAT_FACED_SCAN_SHARE,
 };
 use graycode::{bit_contrasts, decode_view, BitTest, PixelDecode};
 use mask::{
@@ -449,16 +449,20 @@ impl ViewWriter<'_> {
             _ => None,
         };
         let (mut mask, mut white_drop) = self.mask(cap, share.as_deref())?;
+        let interior = share
+            .as_ref()
+            .map(|_| interior_object_pixels(&mask, cap.width));
         let flat_glass = share
             .as_deref()
-            .map(|s| flat_glass_pixels(s, &mask, cap.width));
-        let share = match share {
-            Some(s) if self.o.mask.flat_faces => {
-                let corrected = shares_beside_flat_glass(&s, &mask, cap.width);
+            .zip(interior.as_deref())
+            .map(|(s, inside)| flat_glass_pixels(s, inside));
+        let share = match (share, interior) {
+            (Some(s), Some(inside)) if self.o.mask.flat_faces => {
+                let corrected = shares_beside_flat_glass(&s, &inside, cap.width);
                 (mask, white_drop) = self.mask(cap, Some(&corrected))?;
                 Some(corrected)
             }
-            other => other,
+            (share, _) => share,
         };
         let images = ViewImages::of(cap, &mask, self.code, self.fixed);
         let contrasts = object_contrasts(cap, &mask, &images.monitor);
