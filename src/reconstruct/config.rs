@@ -924,7 +924,8 @@ mod tests {
         let last = lambda_of(&raised, w + plain.stages - 1);
         assert!((last - 20.0 * (350.0f64 * 0.0065).powi(2)).abs() < 1e-9);
         assert_eq!(lambda_of(&raised, w + 1), 20.0);
-        assert!((plain.clone())
+        assert!(plain
+            .clone()
             .with_overrides("smoothing_edge = -1\n")
             .unwrap()
             .check()
