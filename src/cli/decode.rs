@@ -64,6 +64,13 @@ pub struct DecodeArgs {
     /// what the glass beside them shows. Not for sharp-edged cut glass (docs/decisions.md).
     #[arg(long = "flat-faces")]
     pub flat_faces: bool,
+    /// Object pixels whose white image shows less than this share of the light two air–glass
+    /// interfaces pass at normal incidence (against the background's white) get no monitor
+    /// point: their light split on its way (total internal reflection, ghosts), and the code
+    /// decodes to a point no refracted path reaches. 0: every decoded pixel keeps its point.
+    /// Needs a captured background
+    #[arg(long = "min-light", default_value_t = DecodeOptions::default().min_light, value_parser = share_f32)]
+    pub min_light: f32,
 }
 
 pub fn run(a: &DecodeArgs) -> Result<()> {
@@ -82,16 +89,20 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
     let flat_faces_hint = outcome.flat_faces_suggested(a.flat_faces);
     let summaries = outcome.views;
     let object: usize = summaries.iter().map(|s| s.object_pixels).sum();
-    let decoded: f64 = summaries
-        .iter()
-        .map(|s| s.decoded_share * s.object_pixels as f64)
-        .sum();
+    let of_object = |share: fn(&ViewSummary) -> f64| -> f64 {
+        let n: f64 = summaries
+            .iter()
+            .map(|s| share(s) * s.object_pixels as f64)
+            .sum();
+        100.0 * n / object.max(1) as f64
+    };
     outln!(
-        "decoded {} views in {:.1} s into {}: {object} object pixels, {:.1} % with a monitor point; {} view(s) with warnings",
+        "decoded {} views in {:.1} s into {}: {object} object pixels, {:.1} % with a monitor point ({:.1} % left without one for too little light); {} view(s) with warnings",
         summaries.len(),
         t0.elapsed().as_secs_f64(),
         scan.dir.join("decoded").display(),
-        100.0 * decoded / object.max(1) as f64,
+        of_object(|s| s.decoded_share),
+        of_object(|s| s.dim_share.unwrap_or(0.0)),
         summaries.iter().filter(|s| s.warning.is_some()).count()
     );
     if let Some(share) = flat_faces_hint {
@@ -123,6 +134,7 @@ fn options(a: &DecodeArgs) -> DecodeOptions {
             flat_faces: a.flat_faces,
         },
         bit_depth: a.bit_depth,
+        min_light: a.min_light,
     }
 }
 

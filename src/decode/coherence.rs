@@ -309,6 +309,7 @@ mod tests {
             object_pixels: 30,
             decoded_share: 1.0,
             complete_share: 1.0,
+            dim_share: None,
             white_drop: None,
             monitor_edge_px: 0,
             warning: None,

@@ -143,6 +143,39 @@ fn normal_incidence_loss(ior: f64) -> f32 {
     (1.0 - (1.0 - r) * (1.0 - r)) as f32
 }
 
+/// The object pixels whose decoded point is no refracted path's (`true`), with a captured
+/// background: those whose white image shows less than `min_light` of the most light a path
+/// through the object passes, what two air–glass interfaces of index `ior` transmit at normal
+/// incidence (1 − [`normal_incidence_loss`]), relative to the background's white. Where the
+/// light split on its way (total internal reflection, a ghost, a path that misses the monitor)
+/// the code still decodes, to a point no refracted path reaches. `None` without a captured
+/// background or with `min_light` 0.
+pub fn dim_points(
+    mask: &[u8],
+    white: &[u8],
+    background: &[BackgroundPixel],
+    ior: f64,
+    min_light: f32,
+) -> Option<Vec<bool>> {
+    let captured = background.iter().any(|b| b.white.is_some());
+    if !captured || min_light <= 0.0 {
+        return None;
+    }
+    let least = min_light * (1.0 - normal_incidence_loss(ior));
+    let dim = mask
+        .iter()
+        .zip(white)
+        .zip(background)
+        .map(|((&m, &w), bg)| {
+            let ratio = bg
+                .white
+                .filter(|&bw| bw >= MIN_BACKGROUND_WHITE)
+                .map(|bw| w as f32 / bw as f32);
+            is_object(m) && ratio.is_some_and(|r| r < least)
+        });
+    Some(dim.collect())
+}
+
 /// The white ratio over the pixels rules 1 and 2 call background: its median and robust
 /// standard deviation (1.4826 × median absolute deviation); `None` with fewer than 100 such
 /// pixels (or without a captured background).
@@ -536,6 +569,39 @@ fn shows_glass(ratios: &mut [f32], shifts: &mut [f32], evidence: &HoleEvidence) 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn object_points_with_too_little_light_are_marked_and_nothing_else_is() {
+        // Index 1.5: two interfaces pass at most 92.2 % of the light; 0.8 of that is 73.7 %.
+        let bg = |white| BackgroundPixel {
+            point: Some((0.0, 0.0, 1.0, 1.0)),
+            white,
+        };
+        let mask = [
+            MASK_OBJECT,
+            MASK_OBJECT,
+            MASK_OBJECT,
+            0,
+            MASK_FILLED,
+            MASK_OBJECT,
+        ];
+        let white = [200u8, 180, 120, 40, 40, 15];
+        let background = [
+            bg(Some(240)), // 0.83: a refracted path's light
+            bg(Some(240)), // 0.75: still above
+            bg(Some(240)), // 0.50: the light split
+            bg(Some(240)), // background pixel: never marked
+            bg(Some(240)), // a filled hole counts as background here
+            bg(Some(10)),  // the background too dark to judge
+        ];
+        let dim = dim_points(&mask, &white, &background, 1.5, 0.8).unwrap();
+        assert_eq!(dim, [false, false, true, false, false, false]);
+        let stricter = dim_points(&mask, &white, &background, 1.5, 0.9).unwrap();
+        assert_eq!(stricter, [false, true, true, false, false, false]);
+        assert_eq!(dim_points(&mask, &white, &background, 1.5, 0.0), None);
+        let predicted = background.map(|b| BackgroundPixel { white: None, ..b });
+        assert_eq!(dim_points(&mask, &white, &predicted, 1.5, 0.8), None);
+    }
 
     /// The same scene at two camera resolutions cleans alike. In a 640 × 480 image an object 125
     /// pixels across with holes 6 × 6 (filled: under 49 pixels), 10 × 10 (kept), a line 2 wide

@@ -29,8 +29,8 @@ use coherence::{
 };
 use graycode::{bit_contrasts, decode_view, BitTest, PixelDecode};
 use mask::{
-    clean, outline_coverage, pixels_at_monitor_edge, raw_mask, BackgroundPixel, MaskOptions,
-    RawMask, ViewPixels,
+    clean, dim_points, outline_coverage, pixels_at_monitor_edge, raw_mask, BackgroundPixel,
+    MaskOptions, RawMask, ViewPixels,
 };
 
 /// Thresholds of decoding.
@@ -51,6 +51,10 @@ pub struct DecodeOptions {
     /// Bits per sample of 16-bit captures (a 12-bit camera stores values up to 4095);
     /// `None`: the smallest of 10, 12, 14 and 16 that holds each view's white image.
     pub bit_depth: Option<u32>,
+    /// Object pixels whose white image shows less than this share of the most light a path
+    /// through the object passes get no monitor point (0: all keep theirs;
+    /// [`mask::dim_points`], docs/decisions.md#points-from-light-that-split).
+    pub min_light: f32,
 }
 
 impl Default for DecodeOptions {
@@ -63,6 +67,7 @@ impl Default for DecodeOptions {
             min_modulation: 0.3,
             mask: MaskOptions::default(),
             bit_depth: None,
+            min_light: 0.0,
         }
     }
 }
@@ -290,6 +295,7 @@ pub fn decode_scan(
                 object_pixels: 0,
                 decoded_share: 0.0,
                 complete_share: 0.0,
+                dim_share: None,
                 white_drop: None,
                 monitor_edge_px: 0,
                 warning: Some(why),
@@ -464,7 +470,14 @@ impl ViewWriter<'_> {
             }
             (share, _) => share,
         };
-        let images = ViewImages::of(cap, &mask, self.code, self.fixed);
+        let dim = dim_points(
+            &mask,
+            &cap.white,
+            self.background,
+            self.ior,
+            self.o.min_light,
+        );
+        let images = ViewImages::of(cap, (&mask, dim.as_deref()), self.code, self.fixed);
         let contrasts = object_contrasts(cap, &mask, &images.monitor);
         let coverage = share
             .as_deref()
@@ -484,6 +497,7 @@ impl ViewWriter<'_> {
             object_pixels: object,
             decoded_share: decoded as f64 / object.max(1) as f64,
             complete_share: images.complete as f64 / decoded.max(1) as f64,
+            dim_share: dim.map(|_| images.dim as f64 / object.max(1) as f64),
             white_drop: white_drop.map(f64::from),
             monitor_edge_px: edge,
             warning: view_warning(object, edge),
@@ -513,32 +527,44 @@ impl ViewWriter<'_> {
 }
 
 /// A view's decoded monitor points as stored (fixed point, cell widths) and its preview, with
-/// the counts of its object pixels, those decoded, and those decoded to the last bit.
+/// the counts of its object pixels, those decoded, those decoded to the last bit, and those
+/// whose point was dropped for too little light.
 struct ViewImages {
     monitor: Vec<Vec4w>,
     preview: Vec<Vec3b>,
     object: usize,
     decoded: usize,
     complete: usize,
+    dim: usize,
 }
 
 impl ViewImages {
-    /// The images of capture `cap` under its cleaned `mask`.
-    fn of(cap: &DecodedCapture, mask: &[u8], code: &GrayCode, fixed: &FixedPoint) -> Self {
+    /// The images of capture `cap` under its cleaned `mask`, without the points of the object
+    /// pixels `dim` marks ([`dim_points`]).
+    fn of(
+        cap: &DecodedCapture,
+        (mask, dim): (&[u8], Option<&[bool]>),
+        code: &GrayCode,
+        fixed: &FixedPoint,
+    ) -> Self {
         let mut im = ViewImages {
             monitor: Vec::with_capacity(mask.len()),
             preview: Vec::with_capacity(mask.len()),
             object: 0,
             decoded: 0,
             complete: 0,
+            dim: 0,
         };
-        for ((d, (&m, &lit)), &white) in cap
+        for (i, ((d, (&m, &lit)), &white)) in cap
             .pixels
             .iter()
             .zip(mask.iter().zip(&cap.lit))
             .zip(&cap.white)
+            .enumerate()
         {
-            let valid = lit && d.u.bits > 0 && d.v.bits > 0;
+            let decoded = lit && d.u.bits > 0 && d.v.bits > 0;
+            let dimmed = decoded && dim.is_some_and(|dim| dim[i]);
+            let valid = decoded && !dimmed;
             im.monitor.push(if valid {
                 Vec4w::from([
                     fixed.encode(d.u.coord as f64),
@@ -556,6 +582,7 @@ impl ViewImages {
             }
             im.object += 1;
             im.decoded += valid as usize;
+            im.dim += dimmed as usize;
             im.complete += (valid && d.complete(code)) as usize;
             // Object pixels: decoded coordinates as colours (blue: row, green: column), red if
             // nothing decoded.

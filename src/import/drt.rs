@@ -411,6 +411,7 @@ fn import_view(
         object_pixels: objects,
         decoded_share: rays.len() as f64 / objects.max(1) as f64,
         complete_share: 1.0,
+        dim_share: None,
         white_drop: None,
         monitor_edge_px: 0,
         warning: None,

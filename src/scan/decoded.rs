@@ -54,6 +54,10 @@ pub struct ViewSummary {
     pub decoded_share: f64,
     /// Share of those whose every bit is reliable.
     pub complete_share: f64,
+    /// Share of the object pixels whose point was dropped for too little light (`decode`'s
+    /// `min_light`), where a background was captured and the rule was on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dim_share: Option<f64>,
     /// Mask rule 3's threshold used (relative white drop), where a background was captured.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub white_drop: Option<f64>,

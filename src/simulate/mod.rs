@@ -592,6 +592,7 @@ fn write_exact_decoded(
         object_pixels: object,
         decoded_share: decoded as f64 / object.max(1) as f64,
         complete_share: 1.0,
+        dim_share: None,
         white_drop: None,
         monitor_edge_px: 0,
         warning: (object == 0).then(|| "no object pixel: the object is out of view".to_string()),
