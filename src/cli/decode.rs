@@ -96,13 +96,17 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
             .sum();
         100.0 * n / object.max(1) as f64
     };
+    let dim = summaries.iter().any(|s| s.dim_share.is_some()).then(|| {
+        let share = of_object(|s| s.dim_share.unwrap_or(0.0));
+        format!(" ({share:.1} % left without one for too little light)")
+    });
     outln!(
-        "decoded {} views in {:.1} s into {}: {object} object pixels, {:.1} % with a monitor point ({:.1} % left without one for too little light); {} view(s) with warnings",
+        "decoded {} views in {:.1} s into {}: {object} object pixels, {:.1} % with a monitor point{}; {} view(s) with warnings",
         summaries.len(),
         t0.elapsed().as_secs_f64(),
         scan.dir.join("decoded").display(),
         of_object(|s| s.decoded_share),
-        of_object(|s| s.dim_share.unwrap_or(0.0)),
+        dim.unwrap_or_default(),
         summaries.iter().filter(|s| s.warning.is_some()).count()
     );
     if let Some(share) = flat_faces_hint {

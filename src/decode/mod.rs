@@ -584,8 +584,8 @@ impl ViewImages {
             im.decoded += valid as usize;
             im.dim += dimmed as usize;
             im.complete += (valid && d.complete(code)) as usize;
-            // Object pixels: decoded coordinates as colours (blue: row, green: column), red if
-            // nothing decoded.
+            // Object pixels: decoded coordinates as colours (blue: row, green: column), red
+            // without a point (nothing decoded, or too little light).
             im.preview.push(if valid {
                 Vec3b::from([
                     (255.0 * d.v.coord / code.height as f32) as u8,
