@@ -83,6 +83,16 @@ pub struct BackgroundPixel {
 /// A background white level below this (grey levels) gives no usable ratio.
 const MIN_BACKGROUND_WHITE: u8 = 20;
 
+impl BackgroundPixel {
+    /// A pixel's white-image intensity `white` over this background's, where the background was
+    /// captured bright enough.
+    fn white_ratio(&self, white: u8) -> Option<f32> {
+        self.white
+            .filter(|&bw| bw >= MIN_BACKGROUND_WHITE)
+            .map(|bw| white as f32 / bw as f32)
+    }
+}
+
 /// What one pixel tells about the object, before thresholding the white ratio.
 #[derive(Clone, Copy, Debug)]
 struct Evidence {
@@ -116,10 +126,7 @@ fn evidence(
         _ => f32::NAN,
     };
     let bent_or_lost = shift > 1.0 || (!decoded && bg.point.is_some());
-    let ratio = bg
-        .white
-        .filter(|&bw| bw >= MIN_BACKGROUND_WHITE)
-        .map(|bw| white as f32 / bw as f32);
+    let ratio = bg.white_ratio(white);
     Evidence {
         decoded,
         bent_or_lost,
@@ -166,13 +173,7 @@ pub fn dim_points(
         .iter()
         .zip(white)
         .zip(background)
-        .map(|((&m, &w), bg)| {
-            let ratio = bg
-                .white
-                .filter(|&bw| bw >= MIN_BACKGROUND_WHITE)
-                .map(|bw| w as f32 / bw as f32);
-            is_object(m) && ratio.is_some_and(|r| r < least)
-        });
+        .map(|((&m, &w), bg)| is_object(m) && bg.white_ratio(w).is_some_and(|r| r < least));
     Some(dim.collect())
 }
 
