@@ -3,11 +3,16 @@
 //! rises from one plateau to the other over as many camera pixels as the camera spreads a sharp
 //! edge. For a step spread by a symmetric kernel K (the camera's Gaussian blur of σ and the
 //! pixel's own square), the normalised profile f = 2F − 1 (F: K's distribution) gives
-//! ∫ (1 − |f|) = 2 E|K| across the edge: summed over the camera pixels of a line that crosses
-//! the edge at cos θ to its normal, (1 − |f|) sums to 2 E|K| / cos θ. That sum is linear in the
-//! samples (8-bit noise averages out, unlike a fitted width) and needs no edge position. σ is
-//! the value whose model E|σZ + box projected at θ| matches the edges' mean (docs/architecture.md
-//! §4, measuring the blur).
+//! ∫ (1 − f²) = 4 ∫ F (1 − F) = 2 E|K − K'| across the edge (K, K' independent draws of K):
+//! summed over the camera pixels of a line that crosses the edge at cos θ to its normal,
+//! (1 − f²) sums to 2 E|K − K'| / cos θ. The summand is smooth where the profile crosses zero,
+//! so the sum over whole pixels does not depend on where between two pixels the edge lies (with
+//! 1 − |f|, whose kink at the crossing the pixels sample, an edge halfway between two pixels
+//! reads 20 % narrower than one on a pixel's centre at σ 0.7 px, and a monitor square to the
+//! camera puts every edge of a bit at the same place between its pixels). The sensor noise adds
+//! its variance to every f², which the plateaus measure and the sum gets back; no edge position
+//! is fitted. σ is the value whose model E|K − K'| (the square projected at θ) matches the
+//! edges' mean (docs/architecture.md §4, measuring the blur).
 //!
 //! The estimate needs a linear camera response (raw or linear captures), since a tone curve bends
 //! the profile; captures whose pattern and inverse do not add up to white and black between the
@@ -27,8 +32,8 @@ const FIRST_REACH: usize = 12;
 const MAX_REACH: usize = 48;
 /// Share of the edges left out at either end of the sorted measurements (stray edges).
 const TRIM: f64 = 0.1;
-/// Bins of the edges' cos θ over [`MIN_COS`], 1 in the fit (E|K| changes by about 0.2 % across
-/// one).
+/// Bins of the edges' cos θ over [`MIN_COS`], 1 in the fit (the model changes by about 0.2 %
+/// across one).
 const COS_BINS: usize = 30;
 
 /// A decoded capture of the monitor seen directly: its pattern images (OpenCV's order), white
@@ -83,8 +88,9 @@ pub fn estimate(view: &DirectView, code: &GrayCode) -> Result<MeasuredBlur, Unme
         let edges = measure_edges(view, code, reach);
         check_edges(&edges)?;
         let est = fit_sigma(&edges);
-        // The window must span the edge's spread along the line (±4σ at the widest tilt).
-        let wide_enough = 4.0 * (est.sigma_px + 0.5) / MIN_COS <= reach as f64;
+        // The window's outer quarters, its plateaus, must lie beyond the edge's spread along
+        // the line (3 (σ + ½) from the crossing at the widest tilt).
+        let wide_enough = 6.0 * (est.sigma_px + 0.5) / MIN_COS <= reach as f64;
         if wide_enough || reach >= MAX_REACH {
             return Ok(est);
         }
@@ -115,7 +121,7 @@ enum Axis {
 
 /// One measured edge.
 struct Edge {
-    /// E|K|, camera pixels along the edge's normal.
+    /// E|K − K'|, camera pixels along the edge's normal.
     spread: f64,
     /// The cosine between the line and that normal.
     cos: f64,
@@ -242,10 +248,10 @@ fn measure_edge(
         .iter()
         .map(|&p| pattern[p] as f64 - inverse[p] as f64)
         .collect();
-    let (lo, hi) = (
-        (values[0] + values[1]) / 2.0,
-        (values[n - 2] + values[n - 1]) / 2.0,
-    );
+    // Plateaus: the window's outer quarters, each side's level their mean.
+    let quarter = n / 4;
+    let (low, high) = (&values[..quarter], &values[n - quarter..]);
+    let (lo, hi) = (mean(low), mean(high));
     let (mid, swing) = ((hi + lo) / 2.0, (hi - lo) / 2.0);
     let p = window[n / 2];
     let range = view.white[p] as f64 - view.black[p] as f64;
@@ -253,8 +259,7 @@ fn measure_edge(
         return None;
     }
     let f: Vec<f64> = values.iter().map(|v| (v - mid) / swing).collect();
-    // Plateaus: the outer quarter of each side stays on its side (no second edge).
-    let quarter = n / 4;
+    // Each plateau stays on its side (no second edge).
     let clean = f[..quarter].iter().all(|&x| x < -0.5) && f[n - quarter..].iter().all(|&x| x > 0.5);
     if !clean {
         return None;
@@ -264,23 +269,45 @@ fn measure_edge(
     if cos.is_nan() || cos < MIN_COS {
         return None;
     }
-    let sum: f64 = f.iter().map(|x| 1.0 - x.abs()).sum();
-    let excesses: Vec<f64> = (window.iter().zip(&f))
+    // The noise's variance in f, from the plateaus' scatter about their levels; every sample's
+    // f² carries it.
+    let noise = (sum_sq(low, lo) + sum_sq(high, hi)) / (2 * quarter - 2) as f64 / (swing * swing);
+    let sum: f64 = f.iter().map(|x| 1.0 - x * x).sum::<f64>() + n as f64 * noise;
+    Some(Edge {
+        spread: cos * sum / 2.0,
+        cos,
+        excess: excess(view, window, &f, (pattern, inverse)),
+    })
+}
+
+fn mean(xs: &[f64]) -> f64 {
+    xs.iter().sum::<f64>() / xs.len() as f64
+}
+
+/// Σ (x − `m`)² over `xs`.
+fn sum_sq(xs: &[f64], m: f64) -> f64 {
+    xs.iter().map(|x| (x - m) * (x - m)).sum()
+}
+
+/// The mean of (pattern + inverse − white − black) / (white − black) over the window's pixels
+/// between the plateaus (|f| < ½); `None` for a window with none.
+fn excess(
+    view: &DirectView,
+    window: &[usize],
+    f: &[f64],
+    (pattern, inverse): (&[u8], &[u8]),
+) -> Option<f64> {
+    let excesses: Vec<f64> = (window.iter().zip(f))
         .filter(|(_, x)| x.abs() < 0.5)
         .map(|(&p, _)| {
             let (w, b) = (view.white[p] as f64, view.black[p] as f64);
             (pattern[p] as f64 + inverse[p] as f64 - w - b) / (w - b)
         })
         .collect();
-    Some(Edge {
-        spread: cos * sum / 2.0,
-        cos,
-        excess: (!excesses.is_empty())
-            .then(|| excesses.iter().sum::<f64>() / excesses.len() as f64),
-    })
+    (!excesses.is_empty()).then(|| mean(&excesses))
 }
 
-/// σ whose model matches the edges' trimmed mean E|K| (edges checked by [`check_edges`]).
+/// σ whose model matches the edges' trimmed mean E|K − K'| (edges checked by [`check_edges`]).
 fn fit_sigma(edges: &[Edge]) -> MeasuredBlur {
     let mut spreads: Vec<f64> = edges.iter().map(|e| e.spread).collect();
     spreads.sort_by(f64::total_cmp);
@@ -298,7 +325,7 @@ fn fit_sigma(edges: &[Edge]) -> MeasuredBlur {
     let model = |sigma: f64| {
         (counts.iter().enumerate())
             .filter(|(_, &n)| n > 0)
-            .map(|(b, &n)| n as f64 * mean_abs_spread(sigma, bin_cos(b)))
+            .map(|(b, &n)| n as f64 * mean_abs_difference(sigma, bin_cos(b)))
             .sum::<f64>()
             / edges.len() as f64
     };
@@ -320,24 +347,31 @@ fn fit_sigma(edges: &[Edge]) -> MeasuredBlur {
     }
 }
 
-/// E|K| for K = σZ + the unit square pixel projected on a direction at cos θ = `cos` to a side
-/// (Z standard normal), camera pixels: by quadrature (8 × 8 points over the pixel, 121 over Z).
-fn mean_abs_spread(sigma: f64, cos: f64) -> f64 {
-    const BOX: usize = 8;
+/// E|K − K'| for independent K, K' = σZ + the unit square pixel projected on a direction at
+/// cos θ = `cos` to a side (Z standard normal), camera pixels: K − K' = σ√2 Z + cos θ (u − u') +
+/// sin θ (v − v'), the differences of the square's coordinates triangular over [−1, 1]; by
+/// quadrature (32 × 32 points over the two differences, 121 over Z).
+fn mean_abs_difference(sigma: f64, cos: f64) -> f64 {
+    const TRI: usize = 32;
     const Z: usize = 121;
     let sin = (1.0 - cos * cos).max(0.0).sqrt();
+    let tri: Vec<(f64, f64)> = (0..TRI)
+        .map(|i| {
+            let t = -1.0 + 2.0 * (i as f64 + 0.5) / TRI as f64;
+            (t, 1.0 - t.abs())
+        })
+        .collect();
     let (mut sum, mut weight) = (0.0, 0.0);
     for k in 0..Z {
         let z = -6.0 + 12.0 * k as f64 / (Z - 1) as f64;
-        let w = (-0.5 * z * z).exp();
-        for i in 0..BOX {
-            for j in 0..BOX {
-                let b = cos * ((i as f64 + 0.5) / BOX as f64 - 0.5)
-                    + sin * ((j as f64 + 0.5) / BOX as f64 - 0.5);
-                sum += w * (b + sigma * z).abs();
+        let wz = (-0.5 * z * z).exp();
+        for &(a, wa) in &tri {
+            for &(b, wb) in &tri {
+                let w = wz * wa * wb;
+                sum += w * (cos * a + sin * b + sigma * std::f64::consts::SQRT_2 * z).abs();
+                weight += w;
             }
         }
-        weight += w * (BOX * BOX) as f64;
     }
     sum / weight
 }
@@ -350,64 +384,105 @@ mod tests {
 
     #[test]
     fn the_spread_of_a_pixel_alone_and_of_a_wide_gaussian() {
-        // A unit square seen along a side: E|U| = 1/4; a wide Gaussian: σ·√(2/π).
-        assert!((mean_abs_spread(0.0, 1.0) - 0.25).abs() < 1e-3);
-        let wide = mean_abs_spread(4.0, 1.0);
-        let gauss = 4.0 * (2.0 / std::f64::consts::PI).sqrt();
+        // Two draws over a unit square seen along a side: E|U − U'| = 1/3; a wide Gaussian:
+        // E|σ√2 Z| = 2σ/√π.
+        assert!((mean_abs_difference(0.0, 1.0) - 1.0 / 3.0).abs() < 2e-3);
+        let wide = mean_abs_difference(4.0, 1.0);
+        let gauss = 8.0 / std::f64::consts::PI.sqrt();
         assert!(
             (wide - gauss).abs() < 0.01 * gauss,
             "{wide} against {gauss}"
         );
-        assert!(mean_abs_spread(0.5, 0.8) > mean_abs_spread(0.4, 0.8));
+        assert!(mean_abs_difference(0.5, 0.8) > mean_abs_difference(0.4, 0.8));
     }
 
-    /// Stripes of `code`'s bits over a camera that sees monitor column u = 1.3 x + 0.4 y + 20
-    /// and row v = −0.3 x + 1.2 y + 120 (monitor pixels), area-sampled and blurred by `sigma`,
-    /// through the response `gamma` (grey = 255·(linear/255)^gamma), rounded to 8 bits: the blur
-    /// found.
-    fn measured(sigma: f64, gamma: f64) -> Result<MeasuredBlur, Unmeasured> {
+    /// How the test's camera sees the monitor and makes its images.
+    struct Camera {
+        /// Monitor (column, row) seen at camera pixel (x, y), monitor pixels.
+        uv: Box<dyn Fn(f64, f64) -> (f64, f64) + Sync>,
+        /// The blur, camera pixels.
+        sigma: f64,
+        /// The response: grey = 255·(linear/255)^gamma.
+        gamma: f64,
+        /// The sensor noise after the blur, grey levels.
+        noise: f64,
+    }
+
+    impl Camera {
+        /// A linear, noise-free camera with a monitor tilted in the frame, so that a bit's edges
+        /// fall anywhere between pixels.
+        fn tilted(sigma: f64) -> Camera {
+            Camera {
+                uv: Box::new(|x, y| (1.3 * x + 0.4 * y + 20.0, -0.3 * x + 1.2 * y + 120.0)),
+                sigma,
+                gamma: 1.0,
+                noise: 0.0,
+            }
+        }
+    }
+
+    /// Stripes of `code`'s bits seen by `cam` (blurred, area-integrated, noisy, through its
+    /// response, rounded to 8 bits): the blur found.
+    fn measured(cam: &Camera) -> Result<MeasuredBlur, Unmeasured> {
         use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size, BORDER_REPLICATE};
+        use opencv::imgproc::INTER_AREA;
+        use rand::SeedableRng;
+        use rand_distr::Distribution;
         let (w, h) = (320usize, 240usize);
         let code = GrayCode {
             width: 640,
             height: 512,
         };
-        let uv = |x: f64, y: f64| (1.3 * x + 0.4 * y + 20.0, -0.3 * x + 1.2 * y + 120.0);
+        let (uv, sigma, gamma) = (&cam.uv, cam.sigma, cam.gamma);
+        let tone = |v: f64| (255.0 * (v.clamp(0.0, 255.0) / 255.0).powf(gamma)).round() as u8;
+        // The monitor sampled 6 × 6 a camera pixel, blurred there (as optics blur before the
+        // sensor), then averaged over each pixel's square.
+        const SUB: usize = 6;
         let render = |i: usize| -> Vec<u8> {
-            let mut img = vec![0f32; w * h];
-            for (p, v) in img.iter_mut().enumerate() {
-                let (x, y) = ((p % w) as f64, (p / w) as f64);
-                let mut lit = 0;
-                for s in 0..36 {
-                    let (dx, dy) = (
-                        (s % 6) as f64 / 6.0 + 1.0 / 12.0,
-                        (s / 6) as f64 / 6.0 + 1.0 / 12.0,
-                    );
-                    let (u, v) = uv(x + dx - 0.5, y + dy - 0.5);
-                    let (u, v) = (u.floor() as u32, v.floor() as u32);
-                    lit += (i == usize::MAX || code.is_white(i, u, v)) as u32;
-                }
-                *v = 20.0 + 200.0 * lit as f32 / 36.0;
-            }
-            let bytes: Vec<u8> = img.iter().map(|v| v.round() as u8).collect();
-            let mat = Mat::new_rows_cols_with_data(h as i32, w as i32, &bytes).unwrap();
-            let mut out = mat.try_clone().unwrap();
+            let (sw, sh) = (w * SUB, h * SUB);
+            let fine: Vec<f32> = (0..sw * sh)
+                .map(|q| {
+                    let (x, y) = ((q % sw) as f64 + 0.5, (q / sw) as f64 + 0.5);
+                    let (u, v) = uv(x / SUB as f64 - 0.5, y / SUB as f64 - 0.5);
+                    let lit =
+                        i == usize::MAX || code.is_white(i, u.floor() as u32, v.floor() as u32);
+                    20.0 + 200.0 * lit as u8 as f32
+                })
+                .collect();
+            let fine = Mat::new_rows_cols_with_data(sh as i32, sw as i32, &fine).unwrap();
+            let mut blurred = fine.try_clone().unwrap();
             if sigma > 0.0 {
+                let s = sigma * SUB as f64;
                 opencv::imgproc::gaussian_blur(
-                    &mat,
-                    &mut out,
+                    &fine,
+                    &mut blurred,
                     Size::new(0, 0),
-                    sigma,
-                    sigma,
+                    s,
+                    s,
                     BORDER_REPLICATE,
                 )
                 .unwrap();
             }
-            let tone = |v: u8| (255.0 * (v as f64 / 255.0).powf(gamma)).round() as u8;
-            out.data_typed::<u8>()
+            let mut out = Mat::default();
+            opencv::imgproc::resize(
+                &blurred,
+                &mut out,
+                Size::new(w as i32, h as i32),
+                0.0,
+                0.0,
+                INTER_AREA,
+            )
+            .unwrap();
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(i as u64);
+            let normal = rand_distr::Normal::new(0.0, cam.noise).unwrap();
+            let mut noise = || match cam.noise > 0.0 {
+                true => normal.sample(&mut rng),
+                false => 0.0,
+            };
+            out.data_typed::<f32>()
                 .unwrap()
                 .iter()
-                .map(|&v| tone(v))
+                .map(|&v| tone(v as f64 + noise()))
                 .collect()
         };
         let images: Vec<Vec<u8>> = (0..code.pattern_count())
@@ -415,7 +490,7 @@ mod tests {
             .map(render)
             .collect();
         let white = render(usize::MAX);
-        let black = vec![(255.0 * (20.0f64 / 255.0).powf(gamma)).round() as u8; w * h];
+        let black = vec![tone(20.0); w * h];
         let pixels: Vec<PixelDecode> = (0..w * h)
             .map(|p| {
                 let (u, v) = uv((p % w) as f64, (p / w) as f64);
@@ -447,23 +522,45 @@ mod tests {
     #[test]
     fn a_known_blur_is_found_on_tilted_stripes() {
         for sigma in [0.0, 0.7, 1.5, 3.0] {
-            let e = measured(sigma, 1.0).expect("a linear camera's edges measure");
+            let e = measured(&Camera::tilted(sigma)).expect("a linear camera's edges measure");
             eprintln!(
                 "blur {sigma} px: found {:.3} px over {} edges",
                 e.sigma_px, e.edges
             );
             assert!(e.edges >= MIN_EDGES);
             assert!(
-                (e.sigma_px - sigma).abs() <= 0.1 + 0.05 * sigma,
+                (e.sigma_px - sigma).abs() <= 0.05 + 0.02 * sigma,
                 "{sigma}: {e:?}"
             );
         }
     }
 
     #[test]
+    fn the_blur_does_not_depend_on_where_the_edges_fall_between_pixels() {
+        // A monitor square to a noisy camera, 2 monitor pixels a camera pixel: every edge of a
+        // coarse bit lies at the same place between two pixels, from a pixel's centre (offset
+        // 0) to halfway (1).
+        for offset in [0.0, 0.5, 1.0, 1.5] {
+            let cam = Camera {
+                uv: Box::new(move |x, y| (2.0 * x + 20.0 + offset, 2.0 * y + 120.0 + offset)),
+                sigma: 0.7,
+                gamma: 1.0,
+                noise: 3.0,
+            };
+            let e = measured(&cam).expect("a linear camera's edges measure");
+            eprintln!("offset {offset}: found {:.3} px", e.sigma_px);
+            assert!((e.sigma_px - 0.7).abs() <= 0.03, "{offset}: {e:?}");
+        }
+    }
+
+    #[test]
     fn a_tone_curve_is_named_not_measured() {
         // sRGB-like captures: between the stripes pattern + inverse exceed white + black.
-        match measured(0.7, 1.0 / 2.2) {
+        let cam = Camera {
+            gamma: 1.0 / 2.2,
+            ..Camera::tilted(0.7)
+        };
+        match measured(&cam) {
             Err(Unmeasured::Nonlinear(x)) => assert!(x > MAX_EXCESS, "{x}"),
             other => panic!("{other:?}"),
         }

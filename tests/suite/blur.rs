@@ -62,8 +62,8 @@ fn a_blurred_cameras_decoded_points_corrected_for_the_blur_meet_the_centre_rays(
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let scan = Scan::open(&scan_dir).unwrap();
     // simulate records the captures' blur in scan.toml, and decode measures it on the
-    // background captures (low by the simulator's 4 area samples, narrower than a pixel's
-    // square: docs/architecture.md §4).
+    // background captures (low: the simulator blurs on the pixel grid and takes 4 area samples,
+    // narrower than a pixel's square: docs/architecture.md §4).
     assert_eq!(scan.config.blur_px, Some(1.0));
     let size = (scan.camera.width, scan.camera.height);
     let measured = DecodedScan::open(&scan_dir, size).unwrap().blur.unwrap();
