@@ -280,6 +280,7 @@ fn measure_edge(
     })
 }
 
+/// The mean of `xs` (not empty).
 fn mean(xs: &[f64]) -> f64 {
     xs.iter().sum::<f64>() / xs.len() as f64
 }
