@@ -8,7 +8,8 @@ CARGO ?= cargo
 
 .PHONY: deps demo test test-embree4 lint lib-check fuzz bench bench-remesh bench-simulate clean
 
-# Installs missing Debian packages when run as root; otherwise prints the exact command and stops.
+# Installs missing Debian packages when run as root (waiting up to 10 minutes for another apt or
+# dpkg to finish, and stopping if apt-get fails); otherwise prints the exact command and stops.
 deps:
 	@missing=""; \
 	for p in $(DEBIAN_PACKAGES); do \
@@ -17,7 +18,15 @@ deps:
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = "0" ]; then \
 	    echo "glasscan: installing$$missing"; \
-	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq$$missing; \
+	    n=0; until out=$$(apt-get update -qq 2>&1); do \
+	      case "$$out" in *"Could not get lock"*) ;; *) echo "$$out"; n=60 ;; esac; \
+	      n=$$((n + 1)); \
+	      [ $$n -le 60 ] || { echo "glasscan: apt-get update failed (above): fix it and run make again"; exit 1; }; \
+	      [ $$n -gt 1 ] || echo "glasscan: another apt-get holds the package lists; waiting up to 10 minutes"; \
+	      sleep 10; \
+	    done; \
+	    DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=600 install -y -qq$$missing || \
+	      { echo "glasscan: apt-get could not install$$missing (above): fix it and run make again"; exit 1; }; \
 	  else \
 	    echo "glasscan needs these Debian packages:$$missing"; \
 	    echo "install them with:  sudo apt-get install -y$$missing"; \
@@ -41,6 +50,7 @@ test: deps
 # `make test` relinks against the system's Embree.
 EMBREE4 ?= ../shared/embree4
 EMBREE4_LIB := $(CURDIR)/target/embree4-lib
+test-embree4: DEBIAN_PACKAGES += opencv-doc xvfb
 test-embree4: deps
 	@[ -f "$(EMBREE4)/get-lib.sh" ] && [ -f "$(EMBREE4)/include/embree4/rtcore.h" ] || \
 	  { echo "glasscan: $(EMBREE4) has no Embree 4 headers and get-lib.sh: set EMBREE4=folder"; exit 1; }
