@@ -21,6 +21,7 @@
 use super::graycode::PixelDecode;
 use crate::patterns::GrayCode;
 use crate::scan::decoded::MeasuredBlur;
+use crate::util::mean;
 
 /// Edges measured along a line are those whose normal is within this cosine of the line.
 const MIN_COS: f64 = 0.7;
@@ -280,11 +281,6 @@ fn measure_edge(
     })
 }
 
-/// The mean of `xs` (not empty).
-fn mean(xs: &[f64]) -> f64 {
-    xs.iter().sum::<f64>() / xs.len() as f64
-}
-
 /// Σ (x − `m`)² over `xs`.
 fn sum_sq(xs: &[f64], m: f64) -> f64 {
     xs.iter().map(|x| (x - m) * (x - m)).sum()
@@ -314,7 +310,7 @@ fn fit_sigma(edges: &[Edge]) -> MeasuredBlur {
     spreads.sort_by(f64::total_cmp);
     let cut = (TRIM * spreads.len() as f64) as usize;
     let kept = &spreads[cut..spreads.len() - cut];
-    let measured = kept.iter().sum::<f64>() / kept.len() as f64;
+    let measured = mean(kept);
     // The edges' tilts, counted in COS_BINS bins over [MIN_COS, 1]: the model is evaluated once
     // per bin, not once per edge.
     let mut counts = [0usize; COS_BINS];
@@ -476,9 +472,12 @@ mod tests {
             .unwrap();
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(i as u64);
             let normal = rand_distr::Normal::new(0.0, cam.noise).unwrap();
-            let mut noise = || match cam.noise > 0.0 {
-                true => normal.sample(&mut rng),
-                false => 0.0,
+            let mut noise = || {
+                if cam.noise > 0.0 {
+                    normal.sample(&mut rng)
+                } else {
+                    0.0
+                }
             };
             out.data_typed::<f32>()
                 .unwrap()

@@ -507,7 +507,7 @@ mod tests {
                 .filter(|&i| which(i))
                 .map(|i| (positions[i] - mesh.positions[i]).norm())
                 .collect();
-            moved.iter().sum::<f64>() / moved.len() as f64
+            crate::util::mean(&moved)
         };
         mean_moved(&|i| near(&mesh.positions[i])) / mean_moved(&|i| pulled[i])
     }

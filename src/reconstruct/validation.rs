@@ -97,7 +97,7 @@ impl ValidationRecord {
         let counts: Option<Vec<f64>> = self.per_view.iter().map(|v| v.outline_px).collect();
         counts
             .filter(|c| !c.is_empty())
-            .map(|c| c.iter().sum::<f64>() / c.len() as f64)
+            .map(|c| crate::util::mean(&c))
     }
 }
 

@@ -1,4 +1,4 @@
-//! Small helpers shared by every stage: atomic file, folder and image output, medians, the
+//! Small helpers shared by every stage: atomic file, folder and image output, means and medians, the
 //! scattering of a user's seed.
 
 pub mod atomic;
@@ -18,6 +18,11 @@ pub fn short_number(v: f64) -> String {
     } else {
         format!("{v:e}")
     }
+}
+
+/// The mean of `xs`; NaN for an empty list.
+pub fn mean(xs: &[f64]) -> f64 {
+    xs.iter().sum::<f64>() / xs.len() as f64
 }
 
 /// The median of `v` (the upper one for an even count); NaN for an empty list.
