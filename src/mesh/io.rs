@@ -306,16 +306,23 @@ fn read_ply(path: &Path) -> Result<(RawMesh, Option<Vec<f64>>), MeshIoError> {
         path: path.into(),
         cause,
     })?;
-    // ply-rs-bw's messages may span lines; keep ours to one.
-    let parse_err = |e: &dyn std::fmt::Display| MeshIoError::Parse {
-        path: path.into(),
-        format: "PLY",
-        msg: e
-            .to_string()
-            .split('\n')
-            .map(str::trim)
-            .collect::<Vec<_>>()
-            .join("; "),
+    // ply-rs-bw's messages may span lines and end in its parser's debug dump ("String: …",
+    // "Error: ParseError { … }"); keep ours to the one line that says what is wrong.
+    let parse_err = |e: &dyn std::fmt::Display| {
+        let text = e.to_string();
+        let lines: Vec<&str> = text.split('\n').map(str::trim).collect();
+        let msg = lines.join("; ");
+        let cut = ["; String:", "; Error:"]
+            .iter()
+            .filter_map(|m| msg.find(m))
+            .min()
+            .filter(|&i| i > 0)
+            .unwrap_or(msg.len());
+        MeshIoError::Parse {
+            path: path.into(),
+            format: "PLY",
+            msg: msg[..cut].to_string(),
+        }
     };
     let mut reader = Reader::new(BufReader::new(file));
     let vparser = Parser::<PlyVertex>::new();

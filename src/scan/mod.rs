@@ -120,6 +120,11 @@ pub enum ScanError {
     },
     #[error("{path}: {msg}")]
     Config { path: PathBuf, msg: String },
+    #[error(
+        "{dir} is not a scan folder: it has no scan.toml (a scan folder comes from `glasscan \
+         capture`, `simulate` or `import-drt`; the README's scan format describes it)"
+    )]
+    NotAScan { dir: PathBuf },
     #[error(transparent)]
     Calibration(#[from] calib_io::CalibError),
     #[error("cannot write {path}: {cause}")]
@@ -306,9 +311,14 @@ impl ScanConfig {
     /// Reads and checks `dir/scan.toml` (not the calibration files it names).
     pub fn load(dir: &Path) -> Result<Self, ScanError> {
         let path = dir.join("scan.toml");
-        let text = std::fs::read_to_string(&path).map_err(|cause| ScanError::Read {
-            path: path.clone(),
-            cause,
+        let text = std::fs::read_to_string(&path).map_err(|cause| match cause.kind() {
+            std::io::ErrorKind::NotFound => ScanError::NotAScan {
+                dir: dir.to_path_buf(),
+            },
+            _ => ScanError::Read {
+                path: path.clone(),
+                cause,
+            },
         })?;
         let config: ScanConfig = toml::from_str(&text).map_err(|e| ScanError::Config {
             path: path.clone(),

@@ -5,17 +5,20 @@ use std::io::{self, BufWriter, Write};
 use std::path::Path;
 
 /// Writes a file atomically: `fill` writes the whole content into a buffered temporary file in
-/// the same folder as `path`, which is then flushed, synced and renamed to `path`. On any error
-/// the temporary file is removed and `path` is left as it was.
+/// the same folder as `path` (made first if missing, as a folder output is), which is then
+/// flushed, synced and renamed to `path`. On any error the temporary file is removed and `path`
+/// is left as it was.
 pub fn write_atomic<F>(path: &Path, fill: F) -> io::Result<()>
 where
     F: FnOnce(&mut dyn Write) -> io::Result<()>,
 {
     let dir = super::paths::parent_or_here(path);
+    std::fs::create_dir_all(dir).map_err(|e| in_folder(dir, &e))?;
     let tmp = tempfile::Builder::new()
         .prefix(".glasscan-")
         .suffix(".tmp")
-        .tempfile_in(dir)?;
+        .tempfile_in(dir)
+        .map_err(|e| in_folder(dir, &e))?;
     {
         let mut w = BufWriter::new(tmp.as_file());
         fill(&mut w)?;
@@ -31,6 +34,29 @@ where
     tmp.as_file().sync_all()?;
     tmp.persist(path).map_err(|e| e.error)?;
     Ok(())
+}
+
+/// Why no file can be made in folder `dir`, in words that name the folder rather than the
+/// temporary file's name.
+fn in_folder(dir: &Path, e: &io::Error) -> io::Error {
+    let why = match e.kind() {
+        io::ErrorKind::PermissionDenied => "permission denied: choose a folder you can write to",
+        io::ErrorKind::ReadOnlyFilesystem => "the file system is read-only",
+        io::ErrorKind::StorageFull => "the disk is full",
+        io::ErrorKind::NotADirectory | io::ErrorKind::AlreadyExists => {
+            "a file stands where a folder is needed"
+        }
+        _ => "",
+    };
+    let why = if why.is_empty() {
+        e.kind().to_string()
+    } else {
+        why.to_string()
+    };
+    io::Error::new(
+        e.kind(),
+        format!("no file can be made in {}: {why}", dir.display()),
+    )
 }
 
 /// Writes `value` as pretty JSON to `path`, atomically.

@@ -444,3 +444,66 @@ fn obj_errors_quote_the_file() {
     std::fs::write(&obj, "v 0 0 0\nf 1 -5 1\n").unwrap();
     refused_with(&glasscan(&["info", s(&obj)]), 1, "vertex index -5");
 }
+
+/// A folder that is not a scan is named as such, and a file output's missing folder is made
+/// (as a folder output's is) rather than failing after the work.
+#[test]
+fn a_folder_without_scan_toml_and_a_missing_output_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    for command in ["decode", "hull"] {
+        let mut args = vec![command, s(&empty)];
+        let out = dir.path().join("h.ply");
+        if command == "hull" {
+            args.extend(["-o", s(&out)]);
+        }
+        refused_with(
+            &glasscan(&args),
+            1,
+            "is not a scan folder: it has no scan.toml",
+        );
+    }
+    let input = write(dir.path(), "ball.ply", &icosphere(20.0, 3));
+    let out = dir.path().join("new").join("deeper").join("ball.ply");
+    ok(&glasscan(&[
+        "remesh",
+        s(&input),
+        "-o",
+        s(&out),
+        "--edge-mm",
+        "4",
+    ]));
+    assert!(read_mesh(&out).unwrap().faces.len() > 20);
+    // A file where the output's folder should be.
+    let file = dir.path().join("a-file");
+    std::fs::write(&file, "").unwrap();
+    let o = glasscan(&[
+        "remesh",
+        s(&input),
+        "-o",
+        s(&file.join("x.ply")),
+        "--edge-mm",
+        "4",
+    ]);
+    refused_with(&o, 1, "a file stands where a folder is needed");
+}
+
+/// A file that is not PLY is refused with the reader's one sentence, not its debug dump.
+#[test]
+fn a_broken_ply_gets_one_sentence() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.ply");
+    std::fs::write(&bad, "garbage\n").unwrap();
+    let o = glasscan(&["info", s(&bad)]);
+    refused_with(
+        &o,
+        1,
+        "not a readable PLY file: Line 1: Expected magic number 'ply'.",
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !err.contains("ParseError") && !err.contains("String:"),
+        "{err}"
+    );
+}
