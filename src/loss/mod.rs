@@ -14,12 +14,12 @@ pub mod diff;
 pub mod membrane;
 pub mod refraction;
 pub mod sample;
+pub mod scatter;
 pub mod silhouette;
 pub mod smoothness;
 pub mod targets;
 
 use nalgebra::{Point3, Vector3};
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::mesh::TriMesh;
@@ -200,6 +200,9 @@ pub struct Accumulator {
     pub penalty: Vec<f64>,
     /// Chunks already added, emptied, whose lists the next chunks reuse ([`Self::add_reusing`]).
     pub spare: Vec<Contributions>,
+    /// The chunks' entries sorted by part when they are added ([`scatter::scatter`]), kept for
+    /// the next chunks.
+    pub sorted: Vec<scatter::PartSorted>,
 }
 
 impl Accumulator {
@@ -228,6 +231,7 @@ impl Accumulator {
             touches: Vec::new(),
             penalty: Vec::new(),
             spare: Vec::new(),
+            sorted: Vec::new(),
         }
     }
 
@@ -242,9 +246,9 @@ impl Accumulator {
         }));
     }
 
-    /// Adds chunks' contributions, in their order. The vertex range is split between threads,
-    /// each adding, in chunk order, the entries that fall in its part: every vertex sees the
-    /// same sequence of additions whatever the schedule.
+    /// Adds chunks' contributions, in their order: every vertex sees the same sequence of
+    /// additions whatever the schedule and the thread count ([`scatter::scatter`], one part of
+    /// the vertex range per thread).
     pub fn add(&mut self, chunks: &[Contributions]) {
         for c in chunks {
             self.loss += c.loss;
@@ -253,26 +257,6 @@ impl Accumulator {
             self.drops.add(&c.drops);
             self.ior += c.ior;
         }
-        // One part per thread: each part reads every entry, so more parts only add reading.
-        let parts = rayon::current_num_threads();
-        let scatter = |target: &mut [V3], entries: fn(&Contributions) -> &[(u32, V3)]| {
-            let block = target.len().div_ceil(parts).max(1);
-            target
-                .par_chunks_mut(block)
-                .enumerate()
-                .for_each(|(b, part)| {
-                    let lo = b * block;
-                    for c in chunks {
-                        for &(v, x) in entries(c) {
-                            if let Some(t) =
-                                (v as usize).checked_sub(lo).and_then(|i| part.get_mut(i))
-                            {
-                                *t += x;
-                            }
-                        }
-                    }
-                });
-        };
         if !self.touches.is_empty() {
             for &(v, _) in chunks.iter().flat_map(|c| &c.grad) {
                 if let Some(t) = self.touches.get_mut(v as usize) {
@@ -285,8 +269,12 @@ impl Accumulator {
                 }
             }
         }
-        scatter(&mut self.grad, |c| &c.grad);
-        scatter(&mut self.normal_grad, |c| &c.ngrad);
+        let parts = rayon::current_num_threads();
+        let sorted = &mut self.sorted;
+        scatter::scatter(&mut self.grad, chunks, |c| &c.grad, parts, sorted);
+        if !self.normal_grad.is_empty() {
+            scatter::scatter(&mut self.normal_grad, chunks, |c| &c.ngrad, parts, sorted);
+        }
     }
 
     /// The gradient with respect to the positions of `mesh`: the vertex-normal adjoints go
