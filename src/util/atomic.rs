@@ -39,19 +39,16 @@ where
 /// Why no file can be made in folder `dir`, in words that name the folder rather than the
 /// temporary file's name.
 fn in_folder(dir: &Path, e: &io::Error) -> io::Error {
-    let why = match e.kind() {
-        io::ErrorKind::PermissionDenied => "permission denied: choose a folder you can write to",
-        io::ErrorKind::ReadOnlyFilesystem => "the file system is read-only",
-        io::ErrorKind::StorageFull => "the disk is full",
-        io::ErrorKind::NotADirectory | io::ErrorKind::AlreadyExists => {
-            "a file stands where a folder is needed"
+    let why: std::borrow::Cow<str> = match e.kind() {
+        io::ErrorKind::PermissionDenied => {
+            "permission denied: choose a folder you can write to".into()
         }
-        _ => "",
-    };
-    let why = if why.is_empty() {
-        e.kind().to_string()
-    } else {
-        why.to_string()
+        io::ErrorKind::ReadOnlyFilesystem => "the file system is read-only".into(),
+        io::ErrorKind::StorageFull => "the disk is full".into(),
+        io::ErrorKind::NotADirectory | io::ErrorKind::AlreadyExists => {
+            "a file stands where a folder is needed".into()
+        }
+        kind => kind.to_string().into(),
     };
     io::Error::new(
         e.kind(),
