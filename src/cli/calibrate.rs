@@ -68,7 +68,7 @@ pub struct CameraArgs {
     #[arg(long)]
     pub force: bool,
     /// The camera file to write (OpenCV FileStorage YAML, the keys of OpenCV's sample).
-    #[arg(short, long, default_value = "camera.yml")]
+    #[arg(short, long, visible_alias = "out", default_value = "camera.yml")]
     pub output: PathBuf,
 }
 
@@ -80,7 +80,7 @@ pub struct ScreenArgs {
     #[arg(long = "pitch-mm", value_parser = super::common::positive)]
     pub pitch_mm: Option<f64>,
     /// The screen file to write (default: the one scan.toml names).
-    #[arg(short, long)]
+    #[arg(short, long, visible_alias = "out")]
     pub output: Option<PathBuf>,
 }
 
@@ -102,7 +102,7 @@ pub struct TurntableArgs {
     #[arg(long)]
     pub force: bool,
     /// The turntable file to write.
-    #[arg(short, long, default_value = "turntable.yml")]
+    #[arg(short, long, visible_alias = "out", default_value = "turntable.yml")]
     pub output: PathBuf,
 }
 

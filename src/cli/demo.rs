@@ -27,7 +27,12 @@ const DEMO_MARKER: &str = ".glasscan-demo";
 #[derive(Args, Debug)]
 pub struct DemoArgs {
     /// Folder for the demo's files.
-    #[arg(long, default_value = "demo-out")]
+    #[arg(
+        short = 'o',
+        long,
+        visible_alias = "output",
+        default_value = "demo-out"
+    )]
     pub out: PathBuf,
     /// Seed of every random choice.
     #[arg(long, default_value_t = 0)]

@@ -16,7 +16,7 @@ pub struct HullArgs {
     /// The scan folder (decoded: `glasscan decode`, or `simulate --decoded-only`).
     pub scan: PathBuf,
     /// Output mesh (.ply or .obj), world (turntable) frame, mm.
-    #[arg(short, long)]
+    #[arg(short, long, visible_alias = "out")]
     pub output: PathBuf,
     /// Voxel size of the fine grid, mm.
     #[arg(long = "voxel-mm", default_value_t = 1.0, value_parser = positive)]

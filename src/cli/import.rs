@@ -13,7 +13,7 @@ pub struct ImportDrtArgs {
     /// DRT's HDF5 capture file of one object.
     pub file: PathBuf,
     /// The scan folder to write (decoded form with calibration).
-    #[arg(short, long)]
+    #[arg(short, long, visible_alias = "out")]
     pub output: PathBuf,
     /// The camera that made the file (default: from the image size and the keys present).
     #[arg(long, value_enum)]

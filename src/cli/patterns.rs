@@ -14,7 +14,7 @@ pub struct PatternsArgs {
     #[arg(long, value_parser = super::common::parse_size)]
     pub screen: (u32, u32),
     /// Folder for the images.
-    #[arg(long)]
+    #[arg(short = 'o', long, visible_alias = "output")]
     pub out: PathBuf,
     /// Also write N-step phase-shift images (per axis) after the Gray code.
     #[arg(long = "phase-shift")]

@@ -23,7 +23,7 @@ pub struct ReconstructArgs {
     /// The scan folder, decoded (`glasscan decode`, or `simulate --decoded-only`).
     pub scan: PathBuf,
     /// Output folder: result.ply, stage_NN.ply, report.json, loss.png, checkpoint.json.
-    #[arg(short, long)]
+    #[arg(short, long, visible_alias = "out")]
     pub output: PathBuf,
     /// Settings: fast, balanced (the default: beats DRT's schedule at equal time on every
     /// benchmark scan), accurate, or drt (DRT's schedule and optimiser).

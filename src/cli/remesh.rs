@@ -18,7 +18,7 @@ pub struct RemeshArgs {
     /// Input mesh (.ply or .obj): closed, manifold, consistently oriented.
     pub input: PathBuf,
     /// Output mesh (.ply or .obj).
-    #[arg(short, long)]
+    #[arg(short, long, visible_alias = "out")]
     pub output: PathBuf,
     /// Target edge length, mm (the largest one with --adaptive).
     #[arg(long = "edge-mm")]

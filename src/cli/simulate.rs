@@ -22,7 +22,7 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub mesh: PathBuf,
     /// The scan folder to write.
-    #[arg(long)]
+    #[arg(short = 'o', long, visible_alias = "output")]
     pub out: PathBuf,
     /// Turntable views, evenly spaced over 360°.
     #[arg(long, default_value_t = 72, value_parser = clap::value_parser!(u32).range(1..=MAX_VIEWS as i64))]

@@ -342,6 +342,8 @@ fn remesh_writes_a_valid_mesh_and_refuses_bad_input() {
     assert!(!d.join("never.ply").exists());
 }
 
+/// Its output given as `--output` and `-o`: every command's output takes `-o`, `--out` and
+/// `--output`.
 #[test]
 fn patterns_writes_opencvs_sequence_with_an_order_file() {
     use opencv::core::MatTraitConst;
@@ -351,7 +353,7 @@ fn patterns_writes_opencvs_sequence_with_an_order_file() {
         "patterns",
         "--screen",
         "1920x1080",
-        "--out",
+        "--output",
         out.to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -383,7 +385,7 @@ fn patterns_writes_opencvs_sequence_with_an_order_file() {
         "patterns",
         "--screen",
         "1x1080",
-        "--out",
+        "-o",
         out.to_str().unwrap(),
     ]);
     assert_eq!(bad.status.code(), Some(1), "{}", stderr(&bad));

@@ -469,7 +469,7 @@ fn a_folder_without_scan_toml_and_a_missing_output_folder() {
     ok(&glasscan(&[
         "remesh",
         s(&input),
-        "-o",
+        "--out",
         s(&out),
         "--edge-mm",
         "4",
