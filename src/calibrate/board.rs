@@ -13,6 +13,8 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{Point2, Point3};
 use opencv::core::{Mat, MatTraitConst, Point2f, Size, Vector};
 
+use crate::util::image::read_image;
+
 /// A chessboard: inner corners per row (`cols`) and per column (`rows`), square size in mm.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Board {
@@ -237,10 +239,5 @@ pub fn read_images(pattern: &str) -> Result<(Vec<BoardImage>, (u32, u32))> {
 
 /// Reads an image file as 8-bit grey; names the file if it cannot.
 pub fn read_grey(path: &Path) -> Result<Mat> {
-    let m = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_GRAYSCALE)
-        .with_context(|| format!("cannot read {}", path.display()))?;
-    if m.empty() {
-        bail!("{}: not a readable image", path.display());
-    }
-    Ok(m)
+    read_image(path, opencv::imgcodecs::IMREAD_GRAYSCALE)
 }

@@ -2,8 +2,10 @@
 
 use std::path::Path;
 
-use anyhow::{bail, Context, Result};
-use opencv::core::{Mat, MatTraitConst, MatTraitConstManual};
+use anyhow::{bail, Result};
+use opencv::core::MatTraitConstManual;
+
+use crate::util::image::read_image;
 
 /// Contrast below which the camera does not see the monitor's light (grey levels).
 const FATAL_CONTRAST: f64 = 10.0;
@@ -84,11 +86,7 @@ impl Exposure {
 }
 
 fn read_grey(path: &Path) -> Result<Vec<u8>> {
-    let m: Mat = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_GRAYSCALE)
-        .with_context(|| format!("cannot read {}", path.display()))?;
-    if m.empty() {
-        bail!("{}: not a readable image", path.display());
-    }
+    let m = read_image(path, opencv::imgcodecs::IMREAD_GRAYSCALE)?;
     Ok(m.data_bytes()?.to_vec())
 }
 

@@ -9,6 +9,7 @@ use serde::Serialize;
 use crate::scan::decoded::is_object;
 use crate::scan::outline::decode_coverage;
 use crate::util::fixed::{FixedPoint, NONE};
+use crate::util::image::read_image;
 use crate::util::median;
 
 /// How a decoded view compares with the truth.
@@ -129,11 +130,7 @@ pub fn load(path: &Path) -> Result<Mat> {
             path.display()
         );
     }
-    let m = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_UNCHANGED)?;
-    if m.empty() {
-        bail!("{}: not a readable image", path.display());
-    }
-    Ok(m)
+    read_image(path, opencv::imgcodecs::IMREAD_UNCHANGED)
 }
 
 /// Compares view `k` of the scan in `scan_dir` (decoded already) with its truth, both stored with

@@ -22,7 +22,7 @@ use crate::scan::decoded::{self as form, ViewSummary};
 use crate::scan::Scan;
 use crate::util::fixed::{FixedPoint, NONE};
 use crate::util::folder::StagedFolder;
-use crate::util::image::write_pixels;
+use crate::util::image::{read_image, write_pixels};
 use coherence::{
     background_share, fine_bits, flat_glass_pixels, flat_glass_share, interior_object_pixels,
     shares_beside_flat_glass, FineDiffs, FLAT_FACED_SCAN_SHARE,
@@ -115,12 +115,8 @@ fn object_contrasts(cap: &DecodedCapture, mask: &[u8], monitor: &[Vec4w]) -> Vec
 
 /// Reads one capture as grey at its own depth (8 or 16 bits), checked to be `size`.
 fn read_capture(path: &Path, size: (u32, u32)) -> Result<Mat> {
-    use opencv::imgcodecs::{imread, IMREAD_ANYDEPTH, IMREAD_GRAYSCALE};
-    let m = imread(path, IMREAD_GRAYSCALE | IMREAD_ANYDEPTH)
-        .with_context(|| format!("cannot read {}", path.display()))?;
-    if m.empty() {
-        bail!("{}: not a readable image", path.display());
-    }
+    use opencv::imgcodecs::{IMREAD_ANYDEPTH, IMREAD_GRAYSCALE};
+    let m = read_image(path, IMREAD_GRAYSCALE | IMREAD_ANYDEPTH)?;
     if (m.cols() as u32, m.rows() as u32) != size {
         bail!(
             "{}: {}×{} pixels, but the camera (camera.yml) takes {}×{}",

@@ -27,7 +27,7 @@ use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Vec4w};
 
 use super::MAX_BLUR_PX;
 use crate::util::fixed::{FixedPoint, NONE};
-use crate::util::image::write_pixels;
+use crate::util::image::{png_size, read_image, write_pixels};
 use serde::{Deserialize, Serialize};
 
 /// Mask value of an object pixel.
@@ -456,11 +456,7 @@ impl DecodedScan {
                 );
             }
         }
-        let m = opencv::imgcodecs::imread(path, opencv::imgcodecs::IMREAD_UNCHANGED)
-            .with_context(|| format!("cannot read {}", path.display()))?;
-        if m.empty() {
-            bail!("{}: not a readable image", path.display());
-        }
+        let m = read_image(path, opencv::imgcodecs::IMREAD_UNCHANGED)?;
         if (m.cols() as u32, m.rows() as u32) != self.size {
             bail!(
                 "{}: {}×{} pixels, but the camera (camera.yml) takes {}×{}; decode again",
@@ -479,16 +475,4 @@ impl DecodedScan {
         }
         Ok(if m.is_continuous() { m } else { m.try_clone()? })
     }
-}
-
-/// The width and height a PNG file's header declares; `None` for anything else.
-fn png_size(path: &Path) -> Option<(u32, u32)> {
-    use std::io::Read;
-    let mut head = [0u8; 24];
-    std::fs::File::open(path).ok()?.read_exact(&mut head).ok()?;
-    if &head[..8] != b"\x89PNG\r\n\x1a\n" || &head[12..16] != b"IHDR" {
-        return None;
-    }
-    let be = |b: &[u8]| u32::from_be_bytes(b.try_into().expect("4 bytes"));
-    Some((be(&head[16..20]), be(&head[20..24])))
 }

@@ -507,3 +507,35 @@ fn a_broken_ply_gets_one_sentence() {
         "{err}"
     );
 }
+
+/// A PNG cut short (a copy interrupted) is named as such before OpenCV reads it, without
+/// libpng's own line; a missing or empty image is named too.
+#[test]
+fn a_png_cut_short_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("board.png");
+    let grey = vec![128u8; 64 * 48];
+    glasscan::util::image::write_pixels(&png, 64, 48, &grey).unwrap();
+    let bytes = std::fs::read(&png).unwrap();
+    std::fs::write(&png, &bytes[..bytes.len() - 20]).unwrap();
+    let camera = dir.path().join("camera.yml");
+    let run = |images: &Path| {
+        glasscan(&[
+            "calibrate",
+            "camera",
+            "--images",
+            s(images),
+            "--board",
+            "9x6",
+            "--square-mm",
+            "25",
+            "-o",
+            s(&camera),
+        ])
+    };
+    let o = run(&png);
+    refused_with(&o, 1, "a PNG cut short");
+    assert!(!String::from_utf8_lossy(&o.stderr).contains("libpng"));
+    std::fs::write(&png, b"").unwrap();
+    refused_with(&run(&png), 1, "not a readable image");
+}
