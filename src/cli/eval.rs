@@ -142,9 +142,12 @@ fn by_confidence(
 ) -> Result<serde_json::Value> {
     let by = error_by_confidence(result, quality, ref_scene)?;
     let [q1, q2, q3, q4] = by.quartiles_mm;
+    let ratio = by.least_over_most.map_or(
+        "no ratio: no error in the most confident".to_string(),
+        |r| format!("{r:.2}×"),
+    );
     outln!(
-        "by confidence    {q1:.4} / {q2:.4} / {q3:.4} / {q4:.4} mm  (mean vertex error in each quarter of the area, least to most confident by the result's quality; {:.2}×)",
-        by.least_over_most
+        "by confidence    {q1:.4} / {q2:.4} / {q3:.4} / {q4:.4} mm  (mean vertex error in each quarter of the area, least to most confident by the result's quality; {ratio})"
     );
     if let Some(path) = &args.confidence_map {
         write_support_map(

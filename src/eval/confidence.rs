@@ -12,8 +12,9 @@ use crate::trace::{Scene, TraceError};
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct ErrorByConfidence {
     pub quartiles_mm: [f64; 4],
-    /// The least confident quarter's mean error over the most confident one's.
-    pub least_over_most: f64,
+    /// The least confident quarter's mean error over the most confident one's; `None` (JSON
+    /// null) when the most confident quarter has no error to divide by.
+    pub least_over_most: Option<f64>,
 }
 
 /// The error of `result`'s vertices against `reference` (its scene) by quarters of the area
@@ -54,7 +55,7 @@ fn by_quarters(quality: &[f64], areas: &[f64], errors: &[f64]) -> ErrorByConfide
     });
     ErrorByConfidence {
         quartiles_mm,
-        least_over_most: quartiles_mm[0] / quartiles_mm[3].max(f64::MIN_POSITIVE),
+        least_over_most: (quartiles_mm[3] > 0.0).then(|| quartiles_mm[0] / quartiles_mm[3]),
     }
 }
 
@@ -77,9 +78,12 @@ mod tests {
         for (got, want) in r.quartiles_mm.iter().zip(want) {
             assert!((got - want).abs() < 1e-12, "{:?}", r.quartiles_mm);
         }
-        assert!((r.least_over_most - want[0] / want[3]).abs() < 1e-12);
+        assert!((r.least_over_most.unwrap() - want[0] / want[3]).abs() < 1e-12);
         // One vertex holding most of the area fills the quarters it starts in.
         let r = by_quarters(&[0.0, 1.0], &[3.0, 1.0], &[2.0, 1.0]);
         assert_eq!(r.quartiles_mm, [2.0, 0.0, 0.0, 1.0]);
+        // No error at all: no ratio.
+        let r = by_quarters(&[0.0, 1.0], &[1.0, 1.0], &[0.0, 0.0]);
+        assert_eq!(r.least_over_most, None);
     }
 }
