@@ -52,7 +52,7 @@ pub struct ReconstructArgs {
     /// (estimated with the shape within 1.40–1.70), or auto:LO:HI.
     #[arg(long)]
     pub ior: Option<glasscan::scan::Ior>,
-    /// Voxel size of the visual hull, mm.
+    /// Voxel size of the visual hull, mm (also the edge length it is remeshed to).
     #[arg(long = "hull-voxel-mm", default_value_t = 1.0, value_parser = super::common::positive)]
     pub hull_voxel_mm: f64,
 }
@@ -72,8 +72,10 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
     let init = a.init.as_deref().map(read_init).transpose()?;
     let start = match &init {
         Some(m) => Start::Mesh(m),
+        // The hull is remeshed at its voxel size, as `glasscan hull` does by default.
         None => Start::Hull(HullOptions {
             voxel_mm: a.hull_voxel_mm,
+            edge_mm: Some(a.hull_voxel_mm),
             ..HullOptions::default()
         }),
     };

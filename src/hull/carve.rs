@@ -147,10 +147,28 @@ fn coarse_bounds(
     let cmin: [usize; 3] = std::array::from_fn(|a| alive.iter().map(|c| c[a]).min().unwrap_or(0));
     let cmax: [usize; 3] = std::array::from_fn(|a| alive.iter().map(|c| c[a]).max().unwrap_or(0));
     if (0..3).any(|a| cmin[a] == 0 || cmax[a] == n0 - 1) {
+        if 2.0 * voxel_mm > cell0 {
+            // The voxel margin, not the masks, reached the border: a small object.
+            bail!(
+                "the hull's voxels ({voxel_mm} mm) are too coarse for this scan: the camera sees \
+                 only {:.3} mm across at the turntable axis; use --voxel-mm {} or finer \
+                 (reconstruct: --hull-voxel-mm)",
+                2.0 * half / 1.2,
+                one_digit_below(cell0 / 4.0)
+            );
+        }
         bail!("the hull is not bounded inside the camera's field of view: too few views from different directions, or masks that reach the image border");
     }
     let margin = Vector3::repeat(voxel_mm);
     Ok((corner(cmin) - margin, corner(cmax.map(|x| x + 1)) + margin))
+}
+
+/// `x` (> 0) rounded down to one significant digit, written out (0.0137 → "0.01").
+fn one_digit_below(x: f64) -> String {
+    let exponent = x.log10().floor();
+    let digit = (x / 10f64.powf(exponent)).floor();
+    let decimals = (-exponent).max(0.0) as usize;
+    format!("{:.decimals$}", digit * 10f64.powf(exponent))
 }
 
 /// The fine grid: a whole number of blocks of `block`³ voxels from `lo` (mm, world frame).

@@ -173,7 +173,7 @@ pub fn visual_hull(
         Some(h) => {
             progress.phase("remesh", 0);
             remesh_checked(&mc, &RemeshOptions::uniform(h), 0)
-                .context("remeshing the hull (--edge-mm)")?
+                .context("remeshing the hull (hull: --edge-mm; reconstruct: --hull-voxel-mm)")?
                 .0
         }
         None => mc,

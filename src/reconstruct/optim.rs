@@ -40,6 +40,18 @@ pub enum Stepper {
     },
 }
 
+/// Below this bounding-box diagonal (mm) DRT's learning rates, in mm, shrink with the object.
+const SGD_FULL_SCALE_MM: f64 = 50.0;
+
+/// The factor on DRT's learning rates (set in mm for objects of 100–300 mm) for `mesh`: 1 from
+/// [`SGD_FULL_SCALE_MM`] of diagonal up, the diagonal over it below, so that a small object's
+/// steps are as large, for its size, as a 50 mm one's (a 12 mm object turned inside out in the
+/// warm-up at full steps).
+fn small_object_scale(mesh: &TriMesh) -> f64 {
+    let diagonal = mesh.bbox().map_or(0.0, |(lo, hi)| (hi - lo).norm());
+    (diagonal / SGD_FULL_SCALE_MM).clamp(f64::MIN_POSITIVE, 1.0)
+}
+
 impl Stepper {
     /// The optimiser for stage `stage` of `stages` on `mesh`, whose target edge is `edge_mm`, for
     /// `iterations` steps.
@@ -62,7 +74,7 @@ impl Stepper {
                     1.0
                 };
                 Stepper::Sgd {
-                    lr: 1.0 / ((1.0 - t) / lr_start + t / lr_end),
+                    lr: 1.0 / ((1.0 - t) / lr_start + t / lr_end) * small_object_scale(mesh),
                     momentum,
                     velocity: vec![V3::zeros(); mesh.positions.len()],
                 }
