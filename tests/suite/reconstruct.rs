@@ -13,11 +13,19 @@ use nalgebra::Vector3;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// The usual test object, an ellipsoid of semi-axes (30, 24, 20) mm (86 mm of diagonal).
+const SEMI_AXES_MM: [f64; 3] = [30.0, 24.0, 20.0];
+
 fn small_scan(dir: &Path) {
     small_scan_with_ior(dir, SimulateOptions::default().ior);
 }
 
 fn small_scan_with_ior(dir: &Path, ior: f64) {
+    small_scan_of(dir, SEMI_AXES_MM, ior);
+}
+
+/// 12 exact views at 240×180 of an ellipsoid of `semi_axes` (mm) of index `ior`, into `dir`.
+fn small_scan_of(dir: &Path, semi_axes: [f64; 3], ior: f64) {
     let opts = SimulateOptions {
         views: 12,
         width: 240,
@@ -27,13 +35,8 @@ fn small_scan_with_ior(dir: &Path, ior: f64) {
         ior,
         ..Default::default()
     };
-    simulate(
-        &ellipsoid(Vector3::new(30.0, 24.0, 20.0), 4),
-        dir,
-        &opts,
-        |_| (),
-    )
-    .unwrap();
+    let object = ellipsoid(Vector3::from(semi_axes), 4);
+    simulate(&object, dir, &opts, |_| ()).unwrap();
 }
 
 /// One warm-up stage (DRT's, 200 iterations) and three of Large Steps.
@@ -416,21 +419,11 @@ fn extreme_refractive_indices_reconstruct_sensibly() {
 fn a_small_object_reconstructs_at_its_own_scale() {
     let dir = tempfile::tempdir().unwrap();
     let scan = dir.path().join("scan");
-    let opts = SimulateOptions {
-        views: 12,
-        width: 240,
-        height: 180,
-        spp: 1,
-        decoded_only: true,
-        ..Default::default()
-    };
-    simulate(
-        &ellipsoid(Vector3::new(3.0, 2.4, 2.0), 4),
+    small_scan_of(
         &scan,
-        &opts,
-        |_| (),
-    )
-    .unwrap();
+        SEMI_AXES_MM.map(|a| a / 10.0),
+        SimulateOptions::default().ior,
+    );
     let config = dir.path().join("c.toml");
     std::fs::write(&config, CONFIG).unwrap();
     let out = dir.path().join("out");
