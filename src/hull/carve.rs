@@ -150,9 +150,10 @@ fn coarse_bounds(
         if 2.0 * voxel_mm > cell0 {
             // The voxel margin, not the masks, reached the border: a small object.
             bail!(
-                "the hull's voxels ({voxel_mm} mm) are too coarse for this scan: the camera sees \
-                 only {:.3} mm across at the turntable axis; use --voxel-mm {} or finer \
+                "the hull's voxels ({} mm) are too coarse for this scan: the camera sees only \
+                 {:.3} mm across at the turntable axis; use --voxel-mm {} or finer \
                  (reconstruct: --hull-voxel-mm)",
+                crate::util::short_number(voxel_mm),
                 2.0 * half / 1.2,
                 one_digit_below(cell0 / 4.0)
             );

@@ -1,5 +1,5 @@
-//! Small helpers shared by every stage: atomic file, folder and image output, means and medians, the
-//! scattering of a user's seed.
+//! Small helpers shared by every stage: atomic file and folder output, image input and output,
+//! means and medians, the scattering of a user's seed.
 
 pub mod atomic;
 pub mod budget;
