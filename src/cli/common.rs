@@ -172,6 +172,22 @@ pub fn auto_or_open_share(s: &str) -> Result<AutoShare, String> {
     }
 }
 
+/// Parses `auto` (any case) or a positive size in mm: a hull's voxel.
+pub fn voxel_size(s: &str) -> Result<glasscan::hull::VoxelSize, String> {
+    if s.trim().eq_ignore_ascii_case("auto") {
+        return Ok(glasscan::hull::VoxelSize::Auto);
+    }
+    let v = finite(s).map_err(|_| format!("'{s}': expected auto or a size in mm"))?;
+    if v > 0.0 {
+        Ok(glasscan::hull::VoxelSize::Mm(v))
+    } else {
+        Err(format!(
+            "{}: it must be a positive size, or auto",
+            glasscan::util::short_number(v)
+        ))
+    }
+}
+
 /// A progress bar of `len` steps whose line starts with `what`.
 pub fn bar(what: &str, len: usize) -> ProgressBar {
     ProgressBar::new(len as u64).with_style(
@@ -241,9 +257,9 @@ impl Progress for StageBars {
     fn stage_end(&self, r: &StageReport) {
         self.bar.suspend(|| {
             eprintln!(
-                "stage {:>2}: edge {:.2} mm, {} faces, {:.1} s, loss {:.3e} (refraction {:.3e}, silhouette {:.3e}, smoothness {:.3e}{}), rays used {}, dropped {}{}",
+                "stage {:>2}: edge {} mm, {} faces, {:.1} s, loss {:.3e} (refraction {:.3e}, silhouette {:.3e}, smoothness {:.3e}{}), rays used {}, dropped {}{}",
                 r.stage + 1,
-                r.edge_mm,
+                glasscan::util::mm(r.edge_mm, 2),
                 r.faces,
                 r.seconds,
                 r.last.total,

@@ -6,8 +6,8 @@ use std::time::Instant;
 use anyhow::Result;
 use clap::Args;
 
-use super::common::{bar, parse_views, positive};
-use glasscan::hull::{silhouettes, visual_hull, HullOptions};
+use super::common::{bar, parse_views, positive, voxel_size};
+use glasscan::hull::{silhouettes, visual_hull, HullOptions, HullRemesh, VoxelSize};
 use glasscan::mesh::io::write_mesh;
 use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
@@ -18,9 +18,10 @@ pub struct HullArgs {
     /// Output mesh (.ply or .obj), world (turntable) frame, mm.
     #[arg(short, long, visible_alias = "out")]
     pub output: PathBuf,
-    /// Voxel size of the fine grid, mm.
-    #[arg(long = "voxel-mm", default_value_t = 1.0, value_parser = positive)]
-    pub voxel_mm: f64,
+    /// Voxel size of the fine grid, mm, or auto: 1 mm for objects of 50 to 300 mm across
+    /// (bounding-box diagonal), a fiftieth of the diagonal below, a three-hundredth above.
+    #[arg(long = "voxel-mm", default_value = "auto", value_parser = voxel_size)]
+    pub voxel_mm: VoxelSize,
     /// Views to carve with: all (default), or indices and ranges such as 0-35,40.
     #[arg(long)]
     pub views: Option<String>,
@@ -55,12 +56,12 @@ pub fn run(a: &HullArgs) -> Result<()> {
     }
     let seconds_silhouettes = t0.elapsed().as_secs_f64();
     let o = HullOptions {
-        voxel_mm: a.voxel_mm,
+        voxel: a.voxel_mm,
         tolerance: a.tolerance,
-        edge_mm: if a.raw {
-            None
-        } else {
-            Some(a.edge_mm.unwrap_or(a.voxel_mm))
+        remesh: match (a.raw, a.edge_mm) {
+            (true, _) => HullRemesh::Raw,
+            (false, Some(h)) => HullRemesh::EdgeMm(h),
+            (false, None) => HullRemesh::AtVoxel,
         },
         ..HullOptions::default()
     };
@@ -82,7 +83,7 @@ pub fn run(a: &HullArgs) -> Result<()> {
     );
     outln!(
         "  grid {}×{}×{} voxels of {} mm: {} blocks, {} inside, {} on the surface ({} added by the consistency check); {} field points",
-        c.dims[0], c.dims[1], c.dims[2], c.voxel_mm, c.blocks, c.inside_blocks, c.surface_blocks, c.promoted_blocks, c.evaluated_points
+        c.dims[0], c.dims[1], c.dims[2], glasscan::util::short_number(c.voxel_mm), c.blocks, c.inside_blocks, c.surface_blocks, c.promoted_blocks, c.evaluated_points
     );
     outln!(
         "  time: masks {:.2} s, carve {:.2} s, marching cubes {:.2} s ({} faces, {} speck component(s) dropped), remesh {:.2} s",

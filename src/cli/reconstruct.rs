@@ -52,9 +52,10 @@ pub struct ReconstructArgs {
     /// (estimated with the shape within 1.40–1.70), or auto:LO:HI.
     #[arg(long)]
     pub ior: Option<glasscan::scan::Ior>,
-    /// Voxel size of the visual hull, mm (also the edge length it is remeshed to).
-    #[arg(long = "hull-voxel-mm", default_value_t = 1.0, value_parser = super::common::positive)]
-    pub hull_voxel_mm: f64,
+    /// Voxel size of the visual hull, mm (also the edge length it is remeshed to), or auto (as
+    /// `hull --voxel-mm`).
+    #[arg(long = "hull-voxel-mm", default_value = "auto", value_parser = super::common::voxel_size)]
+    pub hull_voxel_mm: glasscan::hull::VoxelSize,
 }
 
 pub fn run(a: &ReconstructArgs) -> Result<()> {
@@ -74,8 +75,7 @@ pub fn run(a: &ReconstructArgs) -> Result<()> {
         Some(m) => Start::Mesh(m),
         // The hull is remeshed at its voxel size, as `glasscan hull` does by default.
         None => Start::Hull(HullOptions {
-            voxel_mm: a.hull_voxel_mm,
-            edge_mm: Some(a.hull_voxel_mm),
+            voxel: a.hull_voxel_mm,
             ..HullOptions::default()
         }),
     };
@@ -175,9 +175,9 @@ fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
     }
     if let Some(e) = &outcome.evaluation {
         outln!(
-            "against the scan's ground truth: accuracy {:.3} mm, completeness {:.3} mm",
-            e.accuracy_mm,
-            e.completeness_mm
+            "against the scan's ground truth: accuracy {} mm, completeness {} mm",
+            glasscan::util::mm(e.accuracy_mm, 3),
+            glasscan::util::mm(e.completeness_mm, 3)
         );
     }
     outln!(

@@ -6,6 +6,7 @@
 //! map draws a per-vertex measure of support (a result's confidence) the same way, red where
 //! nothing supports the surface.
 
+use crate::util::mm;
 use std::path::Path;
 
 use anyhow::Result;
@@ -102,16 +103,16 @@ impl ErrorScale<'_> {
                 "distance to the reference",
                 [
                     "0 mm".into(),
-                    format!("{:.3} mm", 0.5 * max_mm),
-                    format!(">= {max_mm:.3} mm"),
+                    format!("{} mm", mm(0.5 * max_mm, 3)),
+                    format!(">= {} mm", mm(max_mm, 3)),
                 ],
             ),
             ErrorScale::Signed(_) => (
                 "signed distance to the reference (< 0: inside it)",
                 [
-                    format!("<= -{max_mm:.3} mm"),
+                    format!("<= -{} mm", mm(max_mm, 3)),
                     "0 mm".into(),
-                    format!(">= +{max_mm:.3} mm"),
+                    format!(">= +{} mm", mm(max_mm, 3)),
                 ],
             ),
         }

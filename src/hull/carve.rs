@@ -74,21 +74,39 @@ pub struct CarveStats {
 /// The most fine voxels along any axis of the hull's grid (0.05 mm over 200 mm).
 pub const MAX_VOXELS_PER_AXIS: usize = 4096;
 
+/// The fine voxel of a hull: given, or chosen from the object's size.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum VoxelSize {
+    /// Chosen from the diagonal of the box the coarse pass leaves (see [`Self::for_diagonal`]).
+    Auto,
+    /// This edge, mm.
+    Mm(f64),
+}
+
+impl VoxelSize {
+    /// Objects under 50 mm of diagonal get a fiftieth of it, objects over 300 mm a
+    /// three-hundredth (as many voxels across as the largest of DRT's objects, which the
+    /// optimiser's steps are set for), everything between 1 mm (mm); rounded down to two
+    /// significant digits.
+    pub fn for_diagonal(diag_mm: f64) -> f64 {
+        round_down_to_digits((diag_mm / 50.0).min(1.0).max(diag_mm / 300.0), 2)
+    }
+}
+
 /// Carves the fine field: returns the grid, the sampled surface blocks, and figures.
 pub fn carve(
     field: &Field,
     camera_centre_mm: Point3<f64>,
     half_fov_tan: f64,
-    voxel_mm: f64,
+    voxel: VoxelSize,
     block: usize,
     progress: &dyn StepProgress,
 ) -> Result<(Grid, Vec<FieldBlock>, CarveStats)> {
-    let mut stats = CarveStats {
-        voxel_mm,
-        ..Default::default()
-    };
+    let mut stats = CarveStats::default();
     progress.phase("coarse carve", 0);
-    let (lo, hi) = coarse_bounds(field, camera_centre_mm, half_fov_tan, voxel_mm, &mut stats)?;
+    let coarse = CoarseGrid::around_axis(camera_centre_mm, half_fov_tan);
+    let (lo, hi, voxel_mm) = coarse_bounds(field, &coarse, voxel, &mut stats)?;
+    stats.voxel_mm = voxel_mm;
     let fine = FineGrid::new(lo, hi, voxel_mm, block)?;
     stats.dims = fine.dims;
     stats.origin = [lo.x, lo.y, lo.z];
@@ -114,62 +132,132 @@ pub fn carve(
     Ok((grid, blocks, stats))
 }
 
-/// Step 1: a 64³ grid over a cube around the axis point nearest the camera, as wide as the field
-/// of view at that distance; the box (mm, world frame) of the cells not far outside, with a
-/// voxel of margin.
+/// Step 1's grid: 64³ cells over a cube around the axis point nearest the camera, as wide as the
+/// field of view at that distance (mm, world frame).
+struct CoarseGrid {
+    lo: Point3<f64>,
+    /// Cell edge, mm.
+    cell: f64,
+    /// The field of view's width at the axis, mm.
+    view_width: f64,
+}
+
+impl CoarseGrid {
+    const N: usize = 64;
+
+    fn around_axis(camera_centre_mm: Point3<f64>, half_fov_tan: f64) -> Self {
+        let axis_centre = Point3::new(0.0, camera_centre_mm.y, 0.0);
+        let dist = (camera_centre_mm - axis_centre).norm();
+        let half = 1.2 * dist * half_fov_tan;
+        Self {
+            lo: axis_centre - Vector3::repeat(half),
+            cell: 2.0 * half / Self::N as f64,
+            view_width: 2.0 * half / 1.2,
+        }
+    }
+
+    fn corner(&self, c: [usize; 3]) -> Point3<f64> {
+        self.lo + self.cell * Vector3::from(c.map(|x| x as f64))
+    }
+
+    /// The lowest and highest cell (per axis) whose centre is within reach of the silhouettes'
+    /// intersection, for fine voxels of `voxel_mm`.
+    fn alive_range(
+        &self,
+        field: &Field,
+        voxel_mm: f64,
+        stats: &mut CarveStats,
+    ) -> Option<([usize; 3], [usize; 3])> {
+        let n = Self::N;
+        let reach = 0.9 * self.cell + 2.0 * voxel_mm;
+        let alive: Vec<[usize; 3]> = (0..n * n * n)
+            .into_par_iter()
+            .filter_map(|idx| {
+                let c = [idx % n, (idx / n) % n, idx / (n * n)];
+                let p = self.corner(c) + Vector3::repeat(0.5 * self.cell);
+                (field.value(&p, -reach) > -reach).then_some(c)
+            })
+            .collect();
+        stats.evaluated_points += n * n * n;
+        let first = *alive.first()?;
+        let fold = |pick: fn(usize, usize) -> usize| {
+            alive
+                .iter()
+                .fold(first, |m, c| std::array::from_fn(|a| pick(m[a], c[a])))
+        };
+        Some((fold(usize::min), fold(usize::max)))
+    }
+}
+
+/// Step 1: the box (mm, world frame) of the coarse cells not far outside, with a voxel of margin,
+/// and the fine voxel (mm).
 fn coarse_bounds(
     field: &Field,
-    camera_centre_mm: Point3<f64>,
-    half_fov_tan: f64,
+    coarse: &CoarseGrid,
+    voxel: VoxelSize,
+    stats: &mut CarveStats,
+) -> Result<(Point3<f64>, Point3<f64>, f64)> {
+    let provisional = match voxel {
+        VoxelSize::Mm(v) => v,
+        VoxelSize::Auto => (coarse.cell / 4.0).min(1.0),
+    };
+    let mut range = bounded_range(field, coarse, provisional, stats)?;
+    let voxel_mm = match voxel {
+        VoxelSize::Mm(v) => v,
+        VoxelSize::Auto => {
+            let cells = Vector3::from(std::array::from_fn(|a| {
+                (range.1[a] + 1 - range.0[a]) as f64
+            }));
+            let chosen = VoxelSize::for_diagonal(coarse.cell * cells.norm());
+            if chosen > provisional {
+                range = bounded_range(field, coarse, chosen, stats)?;
+            }
+            chosen
+        }
+    };
+    let margin = Vector3::repeat(voxel_mm);
+    Ok((
+        coarse.corner(range.0) - margin,
+        coarse.corner(range.1.map(|x| x + 1)) + margin,
+        voxel_mm,
+    ))
+}
+
+/// The alive cells' range for `voxel_mm`; errors when there is none or when it reaches the grid's
+/// border (the object is not bounded, or the voxel is too coarse for it).
+fn bounded_range(
+    field: &Field,
+    coarse: &CoarseGrid,
     voxel_mm: f64,
     stats: &mut CarveStats,
-) -> Result<(Point3<f64>, Point3<f64>)> {
-    let axis_centre = Point3::new(0.0, camera_centre_mm.y, 0.0);
-    let dist = (camera_centre_mm - axis_centre).norm();
-    let half = 1.2 * dist * half_fov_tan;
-    let n0 = 64usize;
-    let cell0 = 2.0 * half / n0 as f64;
-    let lo0 = axis_centre - Vector3::repeat(half);
-    let reach0 = 0.9 * cell0 + 2.0 * voxel_mm;
-    let corner = |c: [usize; 3]| lo0 + cell0 * Vector3::from(c.map(|x| x as f64));
-    let alive: Vec<[usize; 3]> = (0..n0 * n0 * n0)
-        .into_par_iter()
-        .filter_map(|idx| {
-            let c = [idx % n0, (idx / n0) % n0, idx / (n0 * n0)];
-            let p = corner(c) + Vector3::repeat(0.5 * cell0);
-            (field.value(&p, -reach0) > -reach0).then_some(c)
-        })
-        .collect();
-    stats.evaluated_points += n0 * n0 * n0;
-    if alive.is_empty() {
+) -> Result<([usize; 3], [usize; 3])> {
+    let Some((cmin, cmax)) = coarse.alive_range(field, voxel_mm, stats) else {
         bail!("the silhouettes leave nothing: no point of space projects inside every mask (are the masks and the calibration of the same scan?)");
-    }
-    let cmin: [usize; 3] = std::array::from_fn(|a| alive.iter().map(|c| c[a]).min().unwrap_or(0));
-    let cmax: [usize; 3] = std::array::from_fn(|a| alive.iter().map(|c| c[a]).max().unwrap_or(0));
-    if (0..3).any(|a| cmin[a] == 0 || cmax[a] == n0 - 1) {
-        if 2.0 * voxel_mm > cell0 {
+    };
+    let last = CoarseGrid::N - 1;
+    if (0..3).any(|a| cmin[a] == 0 || cmax[a] == last) {
+        if 2.0 * voxel_mm > coarse.cell {
             // The voxel margin, not the masks, reached the border: a small object.
             bail!(
                 "the hull's voxels ({} mm) are too coarse for this scan: the camera sees only \
-                 {:.3} mm across at the turntable axis; use --voxel-mm {} or finer \
+                 {:.3} mm across at the turntable axis; use --voxel-mm {} or finer, or auto \
                  (reconstruct: --hull-voxel-mm)",
                 crate::util::short_number(voxel_mm),
-                2.0 * half / 1.2,
-                one_digit_below(cell0 / 4.0)
+                coarse.view_width,
+                crate::util::short_number(round_down_to_digits(coarse.cell / 4.0, 1))
             );
         }
         bail!("the hull is not bounded inside the camera's field of view: too few views from different directions, or masks that reach the image border");
     }
-    let margin = Vector3::repeat(voxel_mm);
-    Ok((corner(cmin) - margin, corner(cmax.map(|x| x + 1)) + margin))
+    Ok((cmin, cmax))
 }
 
-/// `x` (> 0) rounded down to one significant digit, written out (0.0137 → "0.01").
-fn one_digit_below(x: f64) -> String {
-    let exponent = x.log10().floor();
-    let digit = (x / 10f64.powf(exponent)).floor();
-    let decimals = (-exponent).max(0.0) as usize;
-    format!("{:.decimals$}", digit * 10f64.powf(exponent))
+/// `x` (> 0, finite) rounded down to `digits` significant digits, as the double nearest the
+/// decimal (0.0137, 1 → 0.01; 0.005125, 2 → 0.0051).
+fn round_down_to_digits(x: f64, digits: i32) -> f64 {
+    let exponent = x.log10().floor() as i32 - (digits - 1);
+    let mantissa = (x / 10f64.powi(exponent)).floor();
+    format!("{mantissa}e{exponent}").parse().unwrap_or(x)
 }
 
 /// The fine grid: a whole number of blocks of `block`³ voxels from `lo` (mm, world frame).
@@ -428,5 +516,32 @@ impl BitSet {
                 .filter(move |b| bits >> b & 1 == 1)
                 .map(move |b| w * 64 + b)
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_automatic_voxel_follows_small_and_huge_objects_only() {
+        assert_eq!(VoxelSize::for_diagonal(50.0), 1.0);
+        assert_eq!(VoxelSize::for_diagonal(234.0), 1.0);
+        assert_eq!(VoxelSize::for_diagonal(300.0), 1.0);
+        assert_eq!(VoxelSize::for_diagonal(11.6), 0.23);
+        assert_eq!(VoxelSize::for_diagonal(0.2563), 0.0051);
+        assert_eq!(VoxelSize::for_diagonal(9_600.0), 32.0);
+        // Never more voxels across than the grid allows, however large.
+        for diag in [3e3, 1e4, 1e5, 1e6] {
+            assert!(diag / VoxelSize::for_diagonal(diag) < MAX_VOXELS_PER_AXIS as f64);
+        }
+    }
+
+    #[test]
+    fn sizes_are_rounded_down_to_their_digits() {
+        assert_eq!(round_down_to_digits(0.0137, 1), 0.01);
+        assert_eq!(round_down_to_digits(0.0999, 2), 0.099);
+        assert_eq!(round_down_to_digits(123.4, 2), 120.0);
+        assert_eq!(round_down_to_digits(1.0, 2), 1.0);
     }
 }

@@ -21,6 +21,7 @@ use crate::remesh::RemeshOptions;
 use crate::scan::decoded::DecodedScan;
 use crate::scan::silhouette::Silhouette;
 use crate::scan::Scan;
+pub use carve::VoxelSize;
 use carve::{carve, CarveStats, Field};
 
 /// Components of the carved surface with less than this share of the largest one's volume are
@@ -31,23 +32,33 @@ pub const SPECK_SHARE: f64 = 0.01;
 /// Settings of a hull.
 #[derive(Clone, Copy, Debug)]
 pub struct HullOptions {
-    /// Fine voxel size, mm.
-    pub voxel_mm: f64,
+    /// Fine voxel size.
+    pub voxel: VoxelSize,
     /// A point survives if it projects inside the mask in all views but this many.
     pub tolerance: usize,
     /// Voxels per block side of the sparse fine grid.
     pub block: usize,
-    /// Remesh the marching-cubes surface to this edge length (mm); `None` keeps it as it is.
-    pub edge_mm: Option<f64>,
+    /// What is done with the marching-cubes surface.
+    pub remesh: HullRemesh,
+}
+
+/// The marching-cubes surface kept as it is, or remeshed isotropically.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum HullRemesh {
+    Raw,
+    /// To edges as long as the voxel.
+    AtVoxel,
+    /// To edges of this length, mm.
+    EdgeMm(f64),
 }
 
 impl Default for HullOptions {
     fn default() -> Self {
         Self {
-            voxel_mm: 1.0,
+            voxel: VoxelSize::Auto,
             tolerance: 0,
             block: 4,
-            edge_mm: Some(1.0),
+            remesh: HullRemesh::AtVoxel,
         }
     }
 }
@@ -130,8 +141,10 @@ pub fn visual_hull(
         .map(Silhouette::with_holes_filled)
         .collect::<Result<_>>()?;
     let sils: Vec<&Silhouette> = filled.iter().map(|s| s.as_ref()).collect();
-    if !(o.voxel_mm > 0.0 && o.voxel_mm.is_finite()) {
-        bail!("--voxel-mm {}: it must be a positive size", o.voxel_mm);
+    if let VoxelSize::Mm(v) = o.voxel {
+        if !(v > 0.0 && v.is_finite()) {
+            bail!("--voxel-mm {v}: it must be a positive size");
+        }
     }
     if o.tolerance >= sils.len() || o.tolerance > 7 {
         bail!(
@@ -154,14 +167,17 @@ pub fn visual_hull(
         tolerance: o.tolerance,
     };
     let t0 = Instant::now();
-    let (grid, blocks, stats) = carve(&field, centre, half_fov_tan, o.voxel_mm, o.block, progress)?;
+    let (grid, blocks, stats) = carve(&field, centre, half_fov_tan, o.voxel, o.block, progress)?;
     let seconds_carve = t0.elapsed().as_secs_f64();
     progress.phase("marching cubes", 0);
     let t1 = Instant::now();
     let mc = marching_cubes(&grid, &blocks);
     let seconds_marching_cubes = t1.elapsed().as_secs_f64();
     if mc.faces.is_empty() {
-        bail!("the hull is empty at --voxel-mm {}: the silhouettes' intersection is thinner than a voxel", o.voxel_mm);
+        bail!(
+            "the hull is empty at --voxel-mm {}: the silhouettes' intersection is thinner than a voxel",
+            crate::util::short_number(stats.voxel_mm)
+        );
     }
     let mc_faces = mc.faces.len();
     // Thin parts carved at the voxel size leave specks, and holes in the masks carve closed
@@ -169,7 +185,12 @@ pub fn visual_hull(
     let (mc, dropped_components) = keep_large_components(&mc, SPECK_SHARE);
     ensure_valid(&mc).context("internal error: marching cubes gave an invalid surface")?;
     let t2 = Instant::now();
-    let mesh = match o.edge_mm {
+    let edge_mm = match o.remesh {
+        HullRemesh::Raw => None,
+        HullRemesh::AtVoxel => Some(stats.voxel_mm),
+        HullRemesh::EdgeMm(h) => Some(h),
+    };
+    let mesh = match edge_mm {
         Some(h) => {
             progress.phase("remesh", 0);
             remesh_checked(&mc, &RemeshOptions::uniform(h), 0)

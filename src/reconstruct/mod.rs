@@ -60,19 +60,26 @@ pub enum Start<'a> {
 pub struct StartMesh {
     pub mesh: TriMesh,
     pub name: &'static str,
+    /// A visual hull's voxel, mm.
+    pub hull_voxel_mm: Option<f64>,
 }
 
 impl Start<'_> {
     /// The start mesh: the visual hull of `silhouettes`, or the given mesh.
     pub fn mesh(self, silhouettes: &[Silhouette]) -> Result<StartMesh> {
         Ok(match self {
-            Start::Hull(o) => StartMesh {
-                mesh: visual_hull(silhouettes, &o, &crate::util::progress::Silent)?.0,
-                name: "hull.ply",
-            },
+            Start::Hull(o) => {
+                let (mesh, report) = visual_hull(silhouettes, &o, &crate::util::progress::Silent)?;
+                StartMesh {
+                    mesh,
+                    name: "hull.ply",
+                    hull_voxel_mm: Some(report.carve.voxel_mm),
+                }
+            }
             Start::Mesh(m) => StartMesh {
                 mesh: m.clone(),
                 name: "start.ply",
+                hull_voxel_mm: None,
             },
         })
     }
@@ -177,7 +184,7 @@ fn record_index(checkpoint: &mut Checkpoint, inputs: &Inputs, progress: &dyn Pro
 /// done, with the settings' footprint resolved.
 fn begin_run(
     inputs: &Inputs,
-    StartMesh { mesh, name }: StartMesh,
+    StartMesh { mesh, name, .. }: StartMesh,
     settings: &Settings,
     out: &Path,
     progress: &dyn Progress,

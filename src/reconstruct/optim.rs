@@ -20,6 +20,9 @@ const STEP_CLAMP: f64 = 3.0;
 pub enum Stepper {
     Sgd {
         lr: f64,
+        /// [`drt_size_scale`]: the gradient (1/mm) times it is the gradient of the same object
+        /// at DRT's sizes, which DRT's clamp of each component to ±1 is applied to.
+        scale: f64,
         momentum: f64,
         velocity: Vec<V3>,
     },
@@ -40,16 +43,25 @@ pub enum Stepper {
     },
 }
 
-/// Below this bounding-box diagonal (mm) DRT's learning rates, in mm, shrink with the object.
-const SGD_FULL_SCALE_MM: f64 = 50.0;
+/// The bounding-box diagonals (mm) DRT's learning rates are kept for as they are: around DRT's
+/// objects (the shared pig, dog and horse span 234–277 mm).
+const DRT_SIZES_MM: (f64, f64) = (230.0, 300.0);
 
-/// The factor on DRT's learning rates (set in mm for objects like DRT's: the shared pig, dog
-/// and horse span 234–277 mm of diagonal) for `mesh`: 1 from [`SGD_FULL_SCALE_MM`] of diagonal
-/// up, the diagonal over it below, so that a small object's steps are as large, for its size,
-/// as a 50 mm one's (a 12 mm object turned inside out in the warm-up at full steps).
-fn small_object_scale(mesh: &TriMesh) -> f64 {
+/// The factor on DRT's learning rates and gradients (set in mm for DRT's objects) for `mesh`:
+/// 1 within [`DRT_SIZES_MM`], the diagonal over the range's nearer end outside it. The terms
+/// are scale-free, so their gradient is inversely proportional to the object's size: with the
+/// gradient times this factor clamped and the step times it, an object moves as the same object
+/// at the range's end would, scaled (at full steps a 12 mm object turned inside out in the
+/// warm-up, and a 9 m one barely moved; with the steps scaled but not the gradient, which the
+/// clamp then cut, a 2.3 mm one collapsed).
+fn drt_size_scale(mesh: &TriMesh) -> f64 {
     let diagonal = mesh.bbox().map_or(0.0, |(lo, hi)| (hi - lo).norm());
-    (diagonal / SGD_FULL_SCALE_MM).clamp(f64::MIN_POSITIVE, 1.0)
+    let (lo, hi) = DRT_SIZES_MM;
+    if diagonal > hi {
+        diagonal / hi
+    } else {
+        (diagonal / lo).clamp(f64::MIN_POSITIVE, 1.0)
+    }
 }
 
 impl Stepper {
@@ -73,8 +85,10 @@ impl Stepper {
                 } else {
                     1.0
                 };
+                let scale = drt_size_scale(mesh);
                 Stepper::Sgd {
-                    lr: 1.0 / ((1.0 - t) / lr_start + t / lr_end) * small_object_scale(mesh),
+                    lr: 1.0 / ((1.0 - t) / lr_start + t / lr_end) * scale,
+                    scale,
                     momentum,
                     velocity: vec![V3::zeros(); mesh.positions.len()],
                 }
@@ -114,13 +128,14 @@ impl Stepper {
         match self {
             Stepper::Sgd {
                 lr,
+                scale,
                 momentum,
                 velocity,
             } => {
                 // Nesterov: v ← μv − lr·g; x ← x + μv − lr·g.
                 let mut out = Vec::with_capacity(positions.len());
                 for ((p, g), v) in positions.iter().zip(grad).zip(velocity.iter_mut()) {
-                    let g = g.map(|c| c.clamp(-1.0, 1.0));
+                    let g = g.map(|c| (c * *scale).clamp(-1.0, 1.0));
                     *v = *v * *momentum - g * *lr;
                     out.push(p + *v * *momentum - g * *lr);
                 }
@@ -394,6 +409,7 @@ fn clipped(grad: &[V3], clip: f64) -> Vec<V3> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::mesh::shapes::icosphere;
 
     /// The index stepper on a noisy quadratic loss in the index (minimum 1.48, the gradient's
     /// noise as large as its value 0.07 away), from 1.55 in 150 iterations as in `balanced`: its
@@ -546,5 +562,48 @@ mod tests {
             frozen.abs() < 0.1 * free,
             "without clipping: {frozen} mm against {free} mm"
         );
+    }
+
+    /// A scale-free loss's gradient is inversely proportional to the object's size: SGD steps on
+    /// an object a hundredth (a tenth) the size, with a hundred (ten) times the gradient, are the
+    /// other one's steps scaled, below (above) DRT's sizes; within them they are DRT's steps.
+    #[test]
+    fn drt_steps_follow_the_object_outside_drts_sizes() {
+        let o = Optimizer::Sgd {
+            lr_start: 0.1,
+            lr_end: 0.05,
+            momentum: 0.95,
+        };
+        // Moves after three steps on an icosphere (bounding-box diagonal 2√3 × radius).
+        let moves = |radius: f64, grad_scale: f64| {
+            let mesh = icosphere(radius, 2);
+            let mut stepper = Stepper::new(&o, &mesh, (0, 3), 1.0, 3).unwrap();
+            let grad: Vec<V3> = (0..mesh.positions.len())
+                .map(|i| V3::new(0.3, -2.0, 0.01 * i as f64) * grad_scale)
+                .collect();
+            let mut p = mesh.positions.clone();
+            for _ in 0..3 {
+                p = stepper.step(&p, &grad);
+            }
+            p.iter()
+                .zip(&mesh.positions)
+                .map(|(p, q)| p - q)
+                .collect::<Vec<V3>>()
+        };
+        let similar = |a: &[V3], b: &[V3], ratio: f64| {
+            a.iter()
+                .zip(b)
+                .all(|(a, b)| (a * ratio - b).norm() <= 1e-9 * b.norm().max(1e-12))
+        };
+        assert!(
+            similar(&moves(0.4, 100.0), &moves(40.0, 1.0), 100.0),
+            "small"
+        );
+        assert!(similar(&moves(1e4, 0.1), &moves(1e3, 1.0), 0.1), "large");
+        assert!(
+            similar(&moves(70.0, 1.0), &moves(85.0, 1.0), 1.0),
+            "DRT's sizes"
+        );
+        assert!(!similar(&moves(40.0, 1.0), &moves(70.0, 1.0), 1.0));
     }
 }

@@ -82,6 +82,13 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
                 progress.note(&format!("visual hull of {} views ...", silhouettes.0.len()));
             }
             let start = start.mesh(&silhouettes.0)?;
+            if let Some(v) = start.hull_voxel_mm {
+                progress.note(&format!(
+                    "  voxels of {} mm, remeshed to {} faces",
+                    crate::util::short_number(v),
+                    start.mesh.faces.len()
+                ));
+            }
             let diagonal_mm = start.mesh.bbox_diagonal();
             (Some(start), diagonal_mm)
         }

@@ -20,6 +20,18 @@ pub fn short_number(v: f64) -> String {
     }
 }
 
+/// A length `v` (mm) with `decimals` decimals, or as many more as keep two significant digits
+/// (`mm(0.00045, 3)` = "0.00045": a small object's figures do not print as 0.000).
+pub fn mm(v: f64, decimals: usize) -> String {
+    let a = v.abs();
+    let decimals = if a > 0.0 && a.is_finite() && a < 10f64.powi(1 - decimals as i32) {
+        (1 - a.log10().floor() as i32) as usize
+    } else {
+        decimals
+    };
+    format!("{v:.decimals$}")
+}
+
 /// The mean of `xs`; NaN for an empty list.
 pub fn mean(xs: &[f64]) -> f64 {
     xs.iter().sum::<f64>() / xs.len() as f64
@@ -82,6 +94,16 @@ pub fn scatter_seed(seed: u64) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lengths_keep_two_significant_digits() {
+        assert_eq!(mm(0.025, 3), "0.025");
+        assert_eq!(mm(0.00045146, 3), "0.00045");
+        assert_eq!(mm(0.0039, 2), "0.0039");
+        assert_eq!(mm(1.25, 2), "1.25");
+        assert_eq!(mm(0.0, 3), "0.000");
+        assert_eq!(mm(-0.0042, 3), "-0.0042");
+    }
 
     #[test]
     fn the_interpolated_median_reads_between_the_middle_values() {

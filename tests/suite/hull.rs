@@ -3,7 +3,7 @@
 
 use crate::common::{decoded_scan, glasscan};
 
-use glasscan::hull::{visual_hull, HullOptions};
+use glasscan::hull::{visual_hull, HullOptions, HullRemesh, VoxelSize};
 use glasscan::mesh::marching_cubes::{marching_cubes, FieldBlock, Grid};
 use glasscan::mesh::sample::sample_surface;
 use glasscan::mesh::shapes::{ellipsoid, figurine, torus};
@@ -170,8 +170,8 @@ fn the_hull_of_a_sphere_converges_to_it() {
     for (views, w, h, voxel) in [(6, 160, 120, 4.0), (18, 320, 240, 2.0), (72, 640, 480, 1.0)] {
         let sils = sphere_silhouettes(views, w, h, r);
         let o = HullOptions {
-            voxel_mm: voxel,
-            edge_mm: None,
+            voxel: VoxelSize::Mm(voxel),
+            remesh: HullRemesh::Raw,
             ..HullOptions::default()
         };
         let (mesh, report) = visual_hull(&sils, &o, &Silent).unwrap();
@@ -207,9 +207,9 @@ fn tolerance_keeps_what_one_bad_mask_cuts_away() {
     sils[5] = Silhouette::from_mask(5, &mask, &camera, poses[5]).unwrap();
     let volume = |tolerance| {
         let o = HullOptions {
-            voxel_mm: 1.5,
+            voxel: VoxelSize::Mm(1.5),
             tolerance,
-            edge_mm: None,
+            remesh: HullRemesh::Raw,
             ..HullOptions::default()
         };
         visual_hull(&sils, &o, &Silent).unwrap().1.volume_mm3
@@ -249,8 +249,8 @@ fn a_hole_the_decoder_filled_is_inside_for_the_hull_and_outside_for_the_silhouet
         let mut sils = sphere_silhouettes(24, 240, 180, r);
         sils[3] = sil;
         let o = HullOptions {
-            voxel_mm: 1.5,
-            edge_mm: None,
+            voxel: VoxelSize::Mm(1.5),
+            remesh: HullRemesh::Raw,
             ..HullOptions::default()
         };
         visual_hull(&sils, &o, &Silent).unwrap().1.volume_mm3
@@ -444,7 +444,8 @@ fn hulls_of_procedural_objects_contain_the_true_shapes() {
         assert!(warnings.is_empty(), "{name}: {warnings:?}");
         let voxel = 1.5;
         let o = HullOptions {
-            voxel_mm: voxel,
+            voxel: VoxelSize::Mm(voxel),
+            remesh: HullRemesh::EdgeMm(1.0),
             ..HullOptions::default()
         };
         let (hull, _) = visual_hull(&sils, &o, &Silent).unwrap();
