@@ -18,8 +18,9 @@ pub struct HullArgs {
     /// Output mesh (.ply or .obj), world (turntable) frame, mm.
     #[arg(short, long, visible_alias = "out")]
     pub output: PathBuf,
-    /// Voxel size of the fine grid, mm, or auto: 1 mm for objects of 50 to 300 mm across
-    /// (bounding-box diagonal), a fiftieth of the diagonal below, a three-hundredth above.
+    /// Voxel size of the fine grid, mm, or auto: 1 mm for objects of 50 to 500 mm across
+    /// (the diagonal of a first coarse box), a fiftieth of the diagonal below, a
+    /// five-hundredth above.
     #[arg(long = "voxel-mm", default_value = "auto", value_parser = voxel_size)]
     pub voxel_mm: VoxelSize,
     /// Views to carve with: all (default), or indices and ranges such as 0-35,40.

@@ -84,12 +84,12 @@ pub enum VoxelSize {
 }
 
 impl VoxelSize {
-    /// Objects under 50 mm of diagonal get a fiftieth of it, objects over 300 mm a
-    /// three-hundredth (as many voxels across as the largest of DRT's objects, which the
-    /// optimiser's steps are set for), everything between 1 mm (mm); rounded down to two
-    /// significant digits.
+    /// From the diagonal of the coarse pass's box (mm; a few coarse cells larger than the
+    /// object's, so that the shared pig's is about 290 mm): under 50 mm a fiftieth of it, over
+    /// 500 mm a five-hundredth (about as many voxels across as DRT's objects get, which the
+    /// optimiser's steps are set for), 1 mm between; rounded down to two significant digits.
     pub fn for_diagonal(diag_mm: f64) -> f64 {
-        round_down_to_digits((diag_mm / 50.0).min(1.0).max(diag_mm / 300.0), 2)
+        round_down_to_digits((diag_mm / 50.0).min(1.0).max(diag_mm / 500.0), 2)
     }
 }
 
@@ -527,10 +527,10 @@ mod tests {
     fn the_automatic_voxel_follows_small_and_huge_objects_only() {
         assert_eq!(VoxelSize::for_diagonal(50.0), 1.0);
         assert_eq!(VoxelSize::for_diagonal(234.0), 1.0);
-        assert_eq!(VoxelSize::for_diagonal(300.0), 1.0);
+        assert_eq!(VoxelSize::for_diagonal(500.0), 1.0);
         assert_eq!(VoxelSize::for_diagonal(11.6), 0.23);
         assert_eq!(VoxelSize::for_diagonal(0.2563), 0.0051);
-        assert_eq!(VoxelSize::for_diagonal(9_600.0), 32.0);
+        assert_eq!(VoxelSize::for_diagonal(9_600.0), 19.0);
         // Never more voxels across than the grid allows, however large.
         for diag in [3e3, 1e4, 1e5, 1e6] {
             assert!(diag / VoxelSize::for_diagonal(diag) < MAX_VOXELS_PER_AXIS as f64);
