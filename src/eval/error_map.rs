@@ -6,7 +6,6 @@
 //! map draws a per-vertex measure of support (a result's confidence) the same way, red where
 //! nothing supports the surface.
 
-use crate::util::mm;
 use std::path::Path;
 
 use anyhow::Result;
@@ -18,6 +17,7 @@ use super::signed_distance;
 use crate::mesh::TriMesh;
 use crate::trace::{ClosestPoint, Ray, Scene};
 use crate::util::image::{label, write_png};
+use crate::util::mm;
 
 /// Side of one panel, pixels.
 const PANEL: i32 = 420;

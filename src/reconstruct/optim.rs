@@ -45,7 +45,7 @@ pub enum Stepper {
 
 /// The bounding-box diagonals (mm) DRT's learning rates are kept for as they are: around DRT's
 /// objects (the shared pig, dog and horse span 234–277 mm).
-const DRT_SIZES_MM: (f64, f64) = (230.0, 300.0);
+const DRT_SIZES_MM: (f64, f64) = (200.0, 300.0);
 
 /// The factor on DRT's learning rates and gradients (set in mm for DRT's objects) for `mesh`:
 /// 1 within [`DRT_SIZES_MM`], the diagonal over the range's nearer end outside it. The terms
