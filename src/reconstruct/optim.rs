@@ -55,7 +55,7 @@ const DRT_SIZES_MM: (f64, f64) = (200.0, 300.0);
 /// warm-up, and a 9 m one barely moved; with the steps scaled but not the gradient, which the
 /// clamp then cut, a 2.3 mm one collapsed).
 fn drt_size_scale(mesh: &TriMesh) -> f64 {
-    let diagonal = mesh.bbox().map_or(0.0, |(lo, hi)| (hi - lo).norm());
+    let diagonal = mesh.bbox_diagonal();
     let (lo, hi) = DRT_SIZES_MM;
     if diagonal > hi {
         diagonal / hi
