@@ -418,62 +418,57 @@ mod tests {
         }
     }
 
-    /// Stripes of `code`'s bits seen by `cam` (blurred, area-integrated, noisy, through its
-    /// response, rounded to 8 bits): the blur found.
-    fn measured(cam: &Camera) -> Result<MeasuredBlur, Unmeasured> {
-        use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size, BORDER_REPLICATE};
-        use opencv::imgproc::INTER_AREA;
-        use rand::SeedableRng;
-        use rand_distr::Distribution;
-        let (w, h) = (320usize, 240usize);
-        let code = GrayCode {
-            width: 640,
-            height: 512,
-        };
-        let (uv, sigma, gamma) = (&cam.uv, cam.sigma, cam.gamma);
-        let tone = |v: f64| (255.0 * (v.clamp(0.0, 255.0) / 255.0).powf(gamma)).round() as u8;
-        // The monitor sampled 6 × 6 a camera pixel, blurred there (as optics blur before the
-        // sensor), then averaged over each pixel's square.
-        const SUB: usize = 6;
-        let render = |i: usize| -> Vec<u8> {
-            let (sw, sh) = (w * SUB, h * SUB);
-            let fine: Vec<f32> = (0..sw * sh)
+    /// The test camera's image size, pixels.
+    const SIZE: (usize, usize) = (320, 240);
+    /// Monitor samples per camera pixel side, blurred there (as optics blur before the sensor),
+    /// then averaged over each pixel's square.
+    const SUB: usize = 6;
+
+    impl Camera {
+        /// Grey level of a linear intensity through the response, rounded to 8 bits.
+        fn tone(&self, v: f64) -> u8 {
+            (255.0 * (v.clamp(0.0, 255.0) / 255.0).powf(self.gamma)).round() as u8
+        }
+
+        /// The monitor at 6 × 6 samples a camera pixel, lit by pattern `i` of `code` (all white
+        /// for `usize::MAX`): 20 grey levels dark, 220 lit.
+        fn monitor_samples(&self, code: &GrayCode, i: usize) -> Vec<f32> {
+            let (sw, sh) = (SIZE.0 * SUB, SIZE.1 * SUB);
+            (0..sw * sh)
                 .map(|q| {
                     let (x, y) = ((q % sw) as f64 + 0.5, (q / sw) as f64 + 0.5);
-                    let (u, v) = uv(x / SUB as f64 - 0.5, y / SUB as f64 - 0.5);
+                    let (u, v) = (self.uv)(x / SUB as f64 - 0.5, y / SUB as f64 - 0.5);
                     let lit =
                         i == usize::MAX || code.is_white(i, u.floor() as u32, v.floor() as u32);
                     20.0 + 200.0 * lit as u8 as f32
                 })
-                .collect();
+                .collect()
+        }
+
+        /// Pattern `i`'s image (see [`Self::monitor_samples`]): blurred, area-integrated, noisy
+        /// (seeded by `i`), through the response.
+        fn image(&self, code: &GrayCode, i: usize) -> Vec<u8> {
+            use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size, BORDER_REPLICATE};
+            use opencv::imgproc::INTER_AREA;
+            use rand::SeedableRng;
+            use rand_distr::Distribution;
+            let fine = self.monitor_samples(code, i);
+            let (sw, sh) = (SIZE.0 * SUB, SIZE.1 * SUB);
             let fine = Mat::new_rows_cols_with_data(sh as i32, sw as i32, &fine).unwrap();
             let mut blurred = fine.try_clone().unwrap();
-            if sigma > 0.0 {
-                let s = sigma * SUB as f64;
-                opencv::imgproc::gaussian_blur(
-                    &fine,
-                    &mut blurred,
-                    Size::new(0, 0),
-                    s,
-                    s,
-                    BORDER_REPLICATE,
-                )
-                .unwrap();
+            if self.sigma > 0.0 {
+                let s = self.sigma * SUB as f64;
+                let zero = Size::new(0, 0);
+                opencv::imgproc::gaussian_blur(&fine, &mut blurred, zero, s, s, BORDER_REPLICATE)
+                    .unwrap();
             }
             let mut out = Mat::default();
-            opencv::imgproc::resize(
-                &blurred,
-                &mut out,
-                Size::new(w as i32, h as i32),
-                0.0,
-                0.0,
-                INTER_AREA,
-            )
-            .unwrap();
+            let size = Size::new(SIZE.0 as i32, SIZE.1 as i32);
+            opencv::imgproc::resize(&blurred, &mut out, size, 0.0, 0.0, INTER_AREA).unwrap();
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(i as u64);
-            let normal = rand_distr::Normal::new(0.0, cam.noise).unwrap();
+            let normal = rand_distr::Normal::new(0.0, self.noise).unwrap();
             let mut noise = || {
-                if cam.noise > 0.0 {
+                if self.noise > 0.0 {
                     normal.sample(&mut rng)
                 } else {
                     0.0
@@ -482,29 +477,45 @@ mod tests {
             out.data_typed::<f32>()
                 .unwrap()
                 .iter()
-                .map(|&v| tone(v as f64 + noise()))
+                .map(|&v| self.tone(v as f64 + noise()))
                 .collect()
+        }
+
+        /// Every pixel decoded to the monitor cell its centre sees.
+        fn true_decodes(&self) -> Vec<PixelDecode> {
+            let (w, h) = SIZE;
+            let axis = |c: f64| AxisDecode {
+                coord: c.floor() as f32,
+                cell: 1,
+                bits: 10,
+            };
+            (0..w * h)
+                .map(|p| {
+                    let (u, v) = (self.uv)((p % w) as f64, (p / w) as f64);
+                    PixelDecode {
+                        u: axis(u),
+                        v: axis(v),
+                    }
+                })
+                .collect()
+        }
+    }
+
+    /// Stripes of `code`'s bits seen by `cam` (blurred, area-integrated, noisy, through its
+    /// response, rounded to 8 bits): the blur found.
+    fn measured(cam: &Camera) -> Result<MeasuredBlur, Unmeasured> {
+        let code = GrayCode {
+            width: 640,
+            height: 512,
         };
         let images: Vec<Vec<u8>> = (0..code.pattern_count())
             .into_par_iter()
-            .map(render)
+            .map(|i| cam.image(&code, i))
             .collect();
-        let white = render(usize::MAX);
-        let black = vec![tone(20.0); w * h];
-        let pixels: Vec<PixelDecode> = (0..w * h)
-            .map(|p| {
-                let (u, v) = uv((p % w) as f64, (p / w) as f64);
-                let axis = |c: f64| AxisDecode {
-                    coord: c.floor() as f32,
-                    cell: 1,
-                    bits: 10,
-                };
-                PixelDecode {
-                    u: axis(u),
-                    v: axis(v),
-                }
-            })
-            .collect();
+        let (w, h) = SIZE;
+        let white = cam.image(&code, usize::MAX);
+        let black = vec![cam.tone(20.0); w * h];
+        let pixels = cam.true_decodes();
         let lit = vec![true; w * h];
         let refs: Vec<&[u8]> = images.iter().map(|i| i.as_slice()).collect();
         let view = DirectView {

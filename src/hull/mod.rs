@@ -14,10 +14,11 @@ use serde::Serialize;
 
 use crate::eval::fidelity::remesh_checked;
 use crate::mesh::components::keep_large_components;
-use crate::mesh::marching_cubes::marching_cubes;
+use crate::mesh::marching_cubes::{marching_cubes, FieldBlock, Grid};
 use crate::mesh::validate::ensure_valid;
 use crate::mesh::TriMesh;
 use crate::remesh::RemeshOptions;
+use crate::rig::camera::Camera;
 use crate::scan::decoded::DecodedScan;
 use crate::scan::silhouette::Silhouette;
 use crate::scan::Scan;
@@ -141,83 +142,104 @@ pub fn visual_hull(
         .map(Silhouette::with_holes_filled)
         .collect::<Result<_>>()?;
     let sils: Vec<&Silhouette> = filled.iter().map(|s| s.as_ref()).collect();
-    if let VoxelSize::Mm(v) = o.voxel {
-        if !(v > 0.0 && v.is_finite()) {
-            bail!("--voxel-mm {v}: it must be a positive size");
-        }
-    }
-    if o.tolerance >= sils.len() || o.tolerance > 7 {
-        bail!(
-            "--tolerance {}: it must be below the number of views ({}) and at most 7",
-            o.tolerance,
-            sils.len()
-        );
-    }
-    let cam = &sils[0].camera;
+    check_options(o, sils.len())?;
     let centre = sils[0].pose.inverse() * nalgebra::Point3::origin();
-    let half_fov_tan = [
-        (0.0, 0.0),
-        (cam.width as f64 - 1.0, cam.height as f64 - 1.0),
-    ]
-    .iter()
-    .map(|&(u, v): &(f64, f64)| ((u - cam.cx) / cam.fx).hypot((v - cam.cy) / cam.fy))
-    .fold(0.0, f64::max);
     let field = Field {
         silhouettes: &sils,
         tolerance: o.tolerance,
     };
     let t0 = Instant::now();
+    let half_fov_tan = half_field_of_view_tan(&sils[0].camera);
     let (grid, blocks, stats) = carve(&field, centre, half_fov_tan, o.voxel, o.block, progress)?;
     let seconds_carve = t0.elapsed().as_secs_f64();
     progress.phase("marching cubes", 0);
     let t1 = Instant::now();
-    let mc = marching_cubes(&grid, &blocks);
+    let (mc, mc_faces, dropped_components) = carved_surface(&grid, &blocks, stats.voxel_mm)?;
     let seconds_marching_cubes = t1.elapsed().as_secs_f64();
+    let t2 = Instant::now();
+    let mesh = remeshed(mc, o.remesh, stats.voxel_mm, progress)?;
+    let seconds_remesh = t2.elapsed().as_secs_f64();
+    let report = ensure_valid(&mesh).context("the remeshed hull is not a valid surface")?;
+    let report = HullReport {
+        views: sils.len(),
+        carve: stats,
+        marching_cubes_faces: mc_faces,
+        dropped_components,
+        faces: mesh.faces.len(),
+        genus: report.genus.unwrap_or(0),
+        volume_mm3: mesh.signed_volume(),
+        seconds_silhouettes: 0.0,
+        seconds_carve,
+        seconds_marching_cubes,
+        seconds_remesh,
+        warnings: Vec::new(),
+    };
+    Ok((mesh, report))
+}
+
+/// Refuses a voxel size or tolerance no hull of `views` views can be carved with.
+fn check_options(o: &HullOptions, views: usize) -> Result<()> {
+    if let VoxelSize::Mm(v) = o.voxel {
+        if !(v > 0.0 && v.is_finite()) {
+            bail!("--voxel-mm {v}: it must be a positive size");
+        }
+    }
+    if o.tolerance >= views || o.tolerance > 7 {
+        bail!(
+            "--tolerance {}: it must be below the number of views ({views}) and at most 7",
+            o.tolerance,
+        );
+    }
+    Ok(())
+}
+
+/// The tangent of the widest angle between `cam`'s optical axis and a ray through its image's
+/// corners (unitless).
+fn half_field_of_view_tan(cam: &Camera) -> f64 {
+    [
+        (0.0, 0.0),
+        (cam.width as f64 - 1.0, cam.height as f64 - 1.0),
+    ]
+    .iter()
+    .map(|&(u, v): &(f64, f64)| ((u - cam.cx) / cam.fx).hypot((v - cam.cy) / cam.fy))
+    .fold(0.0, f64::max)
+}
+
+/// The carved grid's surface by marching cubes, without the specks thin parts leave at the voxel
+/// size and the closed cavities holes in the masks carve (components facing inwards, negative
+/// volume): the surface, its marching-cubes face count and how many components were dropped.
+fn carved_surface(
+    grid: &Grid,
+    blocks: &[FieldBlock],
+    voxel_mm: f64,
+) -> Result<(TriMesh, usize, usize)> {
+    let mc = marching_cubes(grid, blocks);
     if mc.faces.is_empty() {
         bail!(
             "the hull is empty at --voxel-mm {}: the silhouettes' intersection is thinner than a voxel",
-            crate::util::short_number(stats.voxel_mm)
+            crate::util::short_number(voxel_mm)
         );
     }
     let mc_faces = mc.faces.len();
-    // Thin parts carved at the voxel size leave specks, and holes in the masks carve closed
-    // cavities (components facing inwards, negative volume); neither is part of the object.
     let (mc, dropped_components) = keep_large_components(&mc, SPECK_SHARE);
     ensure_valid(&mc).context("internal error: marching cubes gave an invalid surface")?;
-    let t2 = Instant::now();
-    let edge_mm = match o.remesh {
-        HullRemesh::Raw => None,
-        HullRemesh::AtVoxel => Some(stats.voxel_mm),
-        HullRemesh::EdgeMm(h) => Some(h),
+    Ok((mc, mc_faces, dropped_components))
+}
+
+/// The marching-cubes surface `mc` as `remesh` asks (voxels of `voxel_mm` mm).
+fn remeshed(
+    mc: TriMesh,
+    remesh: HullRemesh,
+    voxel_mm: f64,
+    progress: &dyn StepProgress,
+) -> Result<TriMesh> {
+    let edge_mm = match remesh {
+        HullRemesh::Raw => return Ok(mc),
+        HullRemesh::AtVoxel => voxel_mm,
+        HullRemesh::EdgeMm(h) => h,
     };
-    let mesh = match edge_mm {
-        Some(h) => {
-            progress.phase("remesh", 0);
-            remesh_checked(&mc, &RemeshOptions::uniform(h), 0)
-                .context("remeshing the hull (hull: --edge-mm; reconstruct: --hull-voxel-mm)")?
-                .0
-        }
-        None => mc,
-    };
-    let seconds_remesh = t2.elapsed().as_secs_f64();
-    let report = ensure_valid(&mesh).context("the remeshed hull is not a valid surface")?;
-    let faces = mesh.faces.len();
-    let volume_mm3 = mesh.signed_volume();
-    Ok((
-        mesh,
-        HullReport {
-            views: sils.len(),
-            carve: stats,
-            marching_cubes_faces: mc_faces,
-            dropped_components,
-            faces,
-            genus: report.genus.unwrap_or(0),
-            volume_mm3,
-            seconds_silhouettes: 0.0,
-            seconds_carve,
-            seconds_marching_cubes,
-            seconds_remesh,
-            warnings: Vec::new(),
-        },
-    ))
+    progress.phase("remesh", 0);
+    Ok(remesh_checked(&mc, &RemeshOptions::uniform(edge_mm), 0)
+        .context("remeshing the hull (hull: --edge-mm; reconstruct: --hull-voxel-mm)")?
+        .0)
 }

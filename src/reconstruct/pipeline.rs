@@ -26,6 +26,7 @@ use crate::eval::{evaluate_on, EvalOptions, EvalReport};
 use crate::mesh::io::{read_mesh, write_mesh_with_quality};
 use crate::mesh::stats;
 use crate::mesh::TriMesh;
+use crate::scan::silhouette::Silhouette;
 use crate::scan::{Ior, Scan};
 use crate::trace::path::MeshSurface;
 use crate::trace::BuildMode;
@@ -78,17 +79,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     let (start, diagonal_mm) = match &existing {
         Existing::Run(checkpoint) => (None, checkpoint.diagonal_mm),
         Existing::Nothing => {
-            if matches!(start, Start::Hull(_)) {
-                progress.note(&format!("visual hull of {} views ...", silhouettes.0.len()));
-            }
-            let start = start.mesh(&silhouettes.0)?;
-            if let Some(v) = start.hull_voxel_mm {
-                progress.note(&format!(
-                    "  voxels of {} mm, remeshed to {} faces",
-                    crate::util::short_number(v),
-                    start.mesh.faces.len()
-                ));
-            }
+            let start = start_mesh(start, &silhouettes.0, progress)?;
             let diagonal_mm = start.mesh.bbox_diagonal();
             (Some(start), diagonal_mm)
         }
@@ -147,6 +138,27 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
         confidence: Some(confidence.summary()),
         warnings,
     })
+}
+
+/// A new run's start mesh (the visual hull of `silhouettes`, or the given mesh), saying what it
+/// made.
+fn start_mesh(
+    start: Start,
+    silhouettes: &[Silhouette],
+    progress: &dyn Progress,
+) -> Result<StartMesh> {
+    if matches!(start, Start::Hull(_)) {
+        progress.note(&format!("visual hull of {} views ...", silhouettes.len()));
+    }
+    let start = start.mesh(silhouettes)?;
+    if let Some(v) = start.hull_voxel_mm {
+        progress.note(&format!(
+            "  voxels of {} mm, remeshed to {} faces",
+            crate::util::short_number(v),
+            start.mesh.faces.len()
+        ));
+    }
+    Ok(start)
 }
 
 /// A stopped run's outcome: it has no result yet, its last stage stands in.

@@ -335,6 +335,31 @@ fn bilinear(&[a, b, c, d]: &[f64; 4], fx: f64, fy: f64) -> f64 {
 mod tests {
     use super::*;
 
+    /// The signed distance (camera pixels, positive inside) of the whole `w` × `h` image of
+    /// `mask`, as the silhouette computed it before it had a window.
+    fn whole_image_signed_distance(mask: &[u8], w: usize, h: usize) -> Vec<f32> {
+        let full = |inside: bool| -> Vec<f32> {
+            let src: Vec<u8> = mask
+                .iter()
+                .map(|&m| if is_object(m) == inside { 255 } else { 0 })
+                .collect();
+            let m = Mat::new_rows_cols_with_data(h as i32, w as i32, &src).unwrap();
+            let mut d = Mat::default();
+            distance_transform(&m, &mut d, DIST_L2, DIST_MASK_PRECISE, CV_32F).unwrap();
+            d.data_typed::<f32>().unwrap().to_vec()
+        };
+        let (din, dout) = (full(true), full(false));
+        (0..w * h)
+            .map(|i| {
+                if is_object(mask[i]) {
+                    din[i] - 0.5
+                } else {
+                    0.5 - dout[i]
+                }
+            })
+            .collect()
+    }
+
     /// A silhouette keeps its distances for a window around the object: inside it they are the
     /// whole image's, bit for bit (also refined by a measured coverage), beyond it a point is
     /// never said to be further outside than the whole image says, and the window is a small
@@ -368,27 +393,7 @@ mod tests {
             .collect();
         let sil = Silhouette::from_mask(0, &mask, &camera, Isometry3::identity()).unwrap();
         assert!(sil.sd.len() * 3 < w * h, "window {:?}", sil.window);
-        // The whole image's signed distance, as the silhouette computed it before it had a window.
-        let full = |inside: bool| -> Vec<f32> {
-            let src: Vec<u8> = mask
-                .iter()
-                .map(|&m| if is_object(m) == inside { 255 } else { 0 })
-                .collect();
-            let m = Mat::new_rows_cols_with_data(h as i32, w as i32, &src).unwrap();
-            let mut d = Mat::default();
-            distance_transform(&m, &mut d, DIST_L2, DIST_MASK_PRECISE, CV_32F).unwrap();
-            d.data_typed::<f32>().unwrap().to_vec()
-        };
-        let (din, dout) = (full(true), full(false));
-        let mut whole: Vec<f32> = (0..w * h)
-            .map(|i| {
-                if is_object(mask[i]) {
-                    din[i] - 0.5
-                } else {
-                    0.5 - dout[i]
-                }
-            })
-            .collect();
+        let mut whole = whole_image_signed_distance(&mask, w, h);
         // Coverage measured on the outline's pixels, uneven from pixel to pixel, so that the
         // refined contour's crossings fall at positions whose rounding depends on the frame
         // they are reckoned in.

@@ -125,6 +125,13 @@ pub(super) fn check_options(o: &SimulateOptions) -> Result<()> {
             o.screen_height
         );
     }
+    check_optics(o)?;
+    check_boards(&o.boards)
+}
+
+/// The optics' and the capture's bounds: index, distances, fill, phase shift, samples, noise,
+/// blur and distortion.
+fn check_optics(o: &SimulateOptions) -> Result<()> {
     if !(o.ior > 1.0 && o.ior.is_finite()) {
         bail!(
             "--ior {}: a solid object's refractive index is above 1",
@@ -167,7 +174,7 @@ pub(super) fn check_options(o: &SimulateOptions) -> Result<()> {
     if o.distortion.iter().any(|d| d.is_nan() || d.abs() >= 1.0) {
         bail!("distortion coefficients must be finite and below 1 in size");
     }
-    check_boards(&o.boards)
+    Ok(())
 }
 
 /// The calibration boards' bounds: 2–64 inner corners a side, squares of 0.1–1000 mm, 3 to

@@ -355,7 +355,12 @@ fn bad_calibration_input_gives_clear_errors() {
     )
     .unwrap();
     refused(&camera_run(&few.join("*.png")), "10×10 pixels");
-    // Angles that do not match the images.
+    turntable_angles_must_match_the_images(truth, &sq_turntable, t);
+    a_dark_or_missing_background_is_refused(truth, t);
+}
+
+/// Angles that do not match the turntable's images are refused (`t`: a scratch folder).
+fn turntable_angles_must_match_the_images(truth: &Scan, sq_turntable: &str, t: &Path) {
     let o = glasscan(&[
         "calibrate",
         "turntable",
@@ -368,7 +373,7 @@ fn bad_calibration_input_gives_clear_errors() {
         "--board",
         "9x6",
         "--square-mm",
-        &sq_turntable,
+        sq_turntable,
         "--angles=0,10",
         "--camera",
         truth.dir.join("camera.yml").to_str().unwrap(),
@@ -376,7 +381,12 @@ fn bad_calibration_input_gives_clear_errors() {
         t.join("tt.yml").to_str().unwrap(),
     ]);
     refused(&o, "2 angles for 9 images");
-    // A background capture in which the monitor is dark: too little decodes.
+}
+
+/// A background capture in which the monitor is dark, and none at all, are refused (`t`: a
+/// scratch folder).
+fn a_dark_or_missing_background_is_refused(truth: &Scan, t: &Path) {
+    let bg = truth.background_dir();
     let dark = t.join("dark");
     for f in ["scan.toml", "camera.yml", "screen.yml", "turntable.yml"] {
         std::fs::create_dir_all(&dark).unwrap();

@@ -46,6 +46,22 @@ fn empty_scan(from: &Path, to: &Path) {
     }
 }
 
+/// Every image of `scan`'s two views is the one in `recorded`, to the bit.
+fn assert_same_images(recorded: &Path, scan: &Path) {
+    for v in ["view_000", "view_001"] {
+        for name in capture_order(&ScanConfig::load(scan).unwrap()) {
+            let a = opencv::imgcodecs::imread(s(&recorded.join("captures").join(v).join(&name)), 0)
+                .unwrap();
+            let b = opencv::imgcodecs::imread(s(&scan.join("captures").join(v).join(&name)), 0)
+                .unwrap();
+            let same =
+                opencv::core::norm2(&a, &b, opencv::core::NORM_INF, &opencv::core::no_array())
+                    .unwrap();
+            assert_eq!(same, 0.0, "{v}/{name}");
+        }
+    }
+}
+
 #[test]
 fn a_replayed_capture_decodes_and_an_interrupted_one_resumes_at_the_first_missing_image() {
     let dir = tempfile::tempdir().unwrap();
@@ -114,18 +130,7 @@ fn a_replayed_capture_decodes_and_an_interrupted_one_resumes_at_the_first_missin
         "0 0\n1 180\n1 180\n"
     );
     // Every image is the recorded one, and the scan decodes.
-    for v in ["view_000", "view_001"] {
-        for name in capture_order(&ScanConfig::load(&scan).unwrap()) {
-            let a = opencv::imgcodecs::imread(s(&recorded.join("captures").join(v).join(&name)), 0)
-                .unwrap();
-            let b = opencv::imgcodecs::imread(s(&scan.join("captures").join(v).join(&name)), 0)
-                .unwrap();
-            let same =
-                opencv::core::norm2(&a, &b, opencv::core::NORM_INF, &opencv::core::no_array())
-                    .unwrap();
-            assert_eq!(same, 0.0, "{v}/{name}");
-        }
-    }
+    assert_same_images(&recorded, &scan);
     let decoded = ok(&crate::common::glasscan(&["decode", s(&scan)]));
     assert!(decoded.contains("decoded 2 views"), "{decoded}");
     // A complete capture is left as it is.

@@ -1,8 +1,10 @@
 //! The Gray-code decoder against OpenCV's `getProjPixel` and against simulated ground truth.
 
+use std::path::Path;
+
 use crate::common::{fine_monitor_ellipsoid, glasscan};
 use glasscan::decode::coherence::flat_glass_share;
-use glasscan::decode::graycode::{decode_view, BitTest};
+use glasscan::decode::graycode::{decode_view, BitTest, PixelDecode};
 use glasscan::mesh::shapes::{cuboid, ellipsoid};
 use glasscan::mesh::TriMesh;
 use glasscan::patterns::GrayCode;
@@ -63,11 +65,30 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
     };
     let decoded = decode_view(&slices, white, black, &code, opencv_test);
 
+    let (complete, partial) = compare_with_opencv(&code, &mats, &decoded);
+    assert!(complete > 10_000, "{complete} complete pixels");
+    // Through the glass, the antialiased finest stripes blur: pixels OpenCV rejects keep their
+    // coarse bits, and the footprint centroid lies in the cell they select.
+    let foot = load("truth/view_000_footprint.png");
+    let (inside, checked) = centroids_in_their_cells(&code, &foot, &decoded);
+    assert!(
+        partial > 100 && checked > 100,
+        "{partial} partial, {checked} checked"
+    );
+    assert!(
+        inside as f64 >= 0.9 * checked as f64,
+        "footprint centroid inside the cell for {inside} of {checked}"
+    );
+}
+
+/// Every pixel of the 200 × 150 view `images` decoded by OpenCV against `decoded`: the complete
+/// ones must agree exactly; how many were complete, and how many kept only partial bits.
+fn compare_with_opencv(code: &GrayCode, images: &[Mat], decoded: &[PixelDecode]) -> (usize, usize) {
     let mut params = GrayCodePattern_Params::default().unwrap();
     params.set_width(code.width as i32);
     params.set_height(code.height as i32);
     let opencv = GrayCodePattern::create(&params).unwrap();
-    let images: Vector<Mat> = mats.iter().cloned().collect();
+    let images: Vector<Mat> = images.iter().cloned().collect();
     let (mut complete, mut partial) = (0, 0);
     for y in 0..150 {
         for x in 0..200 {
@@ -76,7 +97,7 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
             let error = opencv.get_proj_pixel(&images, x, y, &mut p).unwrap();
             assert_eq!(
                 !error,
-                d.complete(&code),
+                d.complete(code),
                 "pixel ({x}, {y}): OpenCV error {error}, ours {d:?}"
             );
             if !error {
@@ -91,17 +112,24 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
             }
         }
     }
-    assert!(complete > 10_000, "{complete} complete pixels");
-    // Through the glass, the antialiased finest stripes blur: pixels OpenCV rejects keep their
-    // coarse bits, and the footprint centroid lies in the cell they select.
-    let foot = load("truth/view_000_footprint.png");
+    (complete, partial)
+}
+
+/// Of the 200 × 150 view's pixels with partial bits whose whole footprint (`foot`, the
+/// simulator's truth) lies on the monitor, how many have the footprint's centroid inside the
+/// decoded cell, and how many were checked.
+fn centroids_in_their_cells(
+    code: &GrayCode,
+    foot: &Mat,
+    decoded: &[PixelDecode],
+) -> (usize, usize) {
     let s = FixedPoint::for_screen(code.width, code.height).scale as f32;
     let (mut inside, mut checked) = (0, 0);
     for y in 0..150 {
         for x in 0..200 {
             let d = decoded[(y * 200 + x) as usize];
             let f = *foot.at_2d::<Vec4w>(y, x).unwrap();
-            if d.complete(&code)
+            if d.complete(code)
                 || d.u.bits == 0
                 || d.v.bits == 0
                 || f[0] == u16::MAX
@@ -118,14 +146,7 @@ fn agrees_with_opencv_and_keeps_the_reliable_bits_through_glass() {
             }
         }
     }
-    assert!(
-        partial > 100 && checked > 100,
-        "{partial} partial, {checked} checked"
-    );
-    assert!(
-        inside as f64 >= 0.9 * checked as f64,
-        "footprint centroid inside the cell for {inside} of {checked}"
-    );
+    (inside, checked)
 }
 
 #[test]
@@ -157,24 +178,29 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
         assert!(scan.join(f).is_file(), "{f}");
     }
     // The background captures show a sharp camera (one sample per pixel, no blur).
-    let blur = |scan: &std::path::Path| {
-        glasscan::scan::decoded::DecodedScan::open(scan, (160, 120))
-            .unwrap()
-            .blur
-    };
-    let sharp = blur(&scan).expect("measured on the background captures");
+    let sharp = measured_blur(&scan).expect("measured on the background captures");
     assert!(sharp.sigma_px < 0.15, "{sharp:?}");
     assert!(
         out.contains("camera blur on the background captures: σ"),
         "{out}"
     );
+    background_predicted_without_its_captures(&scan, dir.path());
+    bad_views_are_named(&scan, dir.path());
+    bad_images_are_errors_naming_the_file(&scan);
+}
 
-    // Without the background captures, the calibrated screen pose predicts the background.
-    std::fs::rename(
-        scan.join("captures/background"),
-        dir.path().join("background"),
-    )
-    .unwrap();
+/// The blur `decode` measured on `scan`'s background captures.
+fn measured_blur(scan: &Path) -> Option<glasscan::scan::decoded::MeasuredBlur> {
+    glasscan::scan::decoded::DecodedScan::open(scan, (160, 120))
+        .unwrap()
+        .blur
+}
+
+/// Without the background captures (moved to `spare`), the calibrated screen pose predicts the
+/// background.
+fn background_predicted_without_its_captures(scan: &Path, spare: &Path) {
+    let s = scan.to_str().unwrap();
+    std::fs::rename(scan.join("captures/background"), spare.join("background")).unwrap();
     let o = glasscan(&["decode", s, "--compare-ground-truth"]);
     let out = String::from_utf8_lossy(&o.stdout);
     let overall = out.lines().last().unwrap();
@@ -186,14 +212,18 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
         .unwrap();
     assert!(iou >= 0.99, "{overall}");
     assert_eq!(
-        blur(&scan),
+        measured_blur(scan),
         None,
         "no background captures, no blur measured"
     );
+}
 
+/// A saturated view and a dark one are reported by name (`spare` keeps a copy of an image).
+fn bad_views_are_named(scan: &Path, spare: &Path) {
+    let s = scan.to_str().unwrap();
     // A saturated view (black as bright as white) is reported by name.
     let view0 = scan.join("captures/view_000");
-    std::fs::copy(view0.join("black.png"), dir.path().join("black0.png")).unwrap();
+    std::fs::copy(view0.join("black.png"), spare.join("black0.png")).unwrap();
     std::fs::copy(view0.join("white.png"), view0.join("black.png")).unwrap();
     let o = glasscan(&["decode", s, "--views", "0"]);
     let err = String::from_utf8_lossy(&o.stderr);
@@ -201,7 +231,7 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
         o.status.success() && err.contains("view 0") && err.contains("saturated"),
         "{err}"
     );
-    std::fs::copy(dir.path().join("black0.png"), view0.join("black.png")).unwrap();
+    std::fs::copy(spare.join("black0.png"), view0.join("black.png")).unwrap();
 
     // A dark view is reported by name and gets no mask.
     let black = scan.join("captures/view_001/black.png");
@@ -214,8 +244,11 @@ fn decode_recovers_silhouettes_and_points_and_names_bad_captures() {
         "{err}"
     );
     assert!(!scan.join("decoded/view_001_mask.png").exists());
+}
 
-    // A missing image and an image of the wrong size are errors naming the file.
+/// A missing image and an image of the wrong size are errors naming the file.
+fn bad_images_are_errors_naming_the_file(scan: &Path) {
+    let s = scan.to_str().unwrap();
     std::fs::remove_file(scan.join("captures/view_000/07.png")).unwrap();
     let o = glasscan(&["decode", s, "--views", "0"]);
     let err = String::from_utf8_lossy(&o.stderr);
@@ -335,7 +368,7 @@ fn phase_shift_sharpens_the_gray_code() {
 /// A 2-view 160×120 scan (1 sample per pixel, no noise) of a 60 × 44 × 36 mm ellipsoid in front
 /// of a 320-pixel-wide monitor `screen_height` pixels tall (1.2 mm pixels), in `dir/scan`; and
 /// whether the simulator found that the monitor covers it.
-fn small_ellipsoid_scan(dir: &std::path::Path, screen_height: u32) -> (std::path::PathBuf, bool) {
+fn small_ellipsoid_scan(dir: &Path, screen_height: u32) -> (std::path::PathBuf, bool) {
     let scan = dir.join("scan");
     let opts = SimulateOptions {
         views: 2,

@@ -329,6 +329,21 @@ fn hull_at_1_5_mm(scan: &std::path::Path, out: &std::path::Path) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
+/// A missing scan is an error, and a scan not decoded (a copy of `decoded`'s settings without
+/// its decoded folder) says to decode it.
+fn a_scan_not_decoded_is_named(decoded: &std::path::Path) {
+    let err = |o: &std::process::Output| String::from_utf8_lossy(&o.stderr).into_owned();
+    let raw = tempfile::tempdir().unwrap();
+    let r = glasscan(&["hull", "/nonexistent-scan", "-o", "x.ply"]);
+    assert_eq!(r.status.code(), Some(1));
+    let scan = Scan::open(decoded).unwrap();
+    let mut moved = scan.clone();
+    moved.dir = raw.path().to_path_buf();
+    moved.save().unwrap();
+    let r = glasscan(&["hull", raw.path().to_str().unwrap(), "-o", "x.ply"]);
+    assert!(err(&r).contains("glasscan decode"), "{}", err(&r));
+}
+
 #[test]
 fn bad_masks_are_clear_errors_or_named_warnings() {
     let dir = tempfile::tempdir().unwrap();
@@ -365,16 +380,7 @@ fn bad_masks_are_clear_errors_or_named_warnings() {
     let ok = run();
     assert!(ok.status.success(), "{}", err(&ok));
 
-    // Not decoded.
-    let raw = tempfile::tempdir().unwrap();
-    let r = glasscan(&["hull", "/nonexistent-scan", "-o", "x.ply"]);
-    assert_eq!(r.status.code(), Some(1));
-    let scan = Scan::open(dir.path()).unwrap();
-    let mut moved = scan.clone();
-    moved.dir = raw.path().to_path_buf();
-    moved.save().unwrap();
-    let r = glasscan(&["hull", raw.path().to_str().unwrap(), "-o", "x.ply"]);
-    assert!(err(&r).contains("glasscan decode"), "{}", err(&r));
+    a_scan_not_decoded_is_named(dir.path());
 
     let original = std::fs::read(mask(3)).unwrap();
     // Wrong size.

@@ -55,6 +55,26 @@ const POINT_GREY: Layout = Layout {
 /// Writes `scan` in DRT's layout; returns the number of rows zeroed.
 fn export_drt(scan: &Scan, path: &Path, l: Layout) -> usize {
     let _open = hdf5_open();
+    let (arrays, zeroed) = drt_arrays(scan, l);
+    write_drt_file(path, l, arrays);
+    zeroed
+}
+
+/// The datasets of a DRT file, as DRT names them.
+struct DrtArrays {
+    cam_proj: Array3<f64>,
+    cam_k: Array2<f64>,
+    mask: Array3<u8>,
+    screen_position: Array3<f32>,
+    ray_origin: Array3<f32>,
+    ray_dir: Array3<f32>,
+    /// The image size, pixels.
+    size: (usize, usize),
+}
+
+/// `scan`'s views in DRT's arrays (views repeated up to `l.views`; every seventh object pixel's
+/// row zeroed with `l.invalid_rows`), and how many rows were zeroed.
+fn drt_arrays(scan: &Scan, l: Layout) -> (DrtArrays, usize) {
     let (w, h) = (scan.camera.width as usize, scan.camera.height as usize);
     let decoded = DecodedScan::open(&scan.dir, (w as u32, h as u32)).unwrap();
     let poses = scan.view_poses();
@@ -106,34 +126,52 @@ fn export_drt(scan: &Scan, path: &Path, l: Layout) -> usize {
         vec![k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0],
     )
     .unwrap();
+    let arrays = DrtArrays {
+        cam_proj,
+        cam_k,
+        mask,
+        screen_position: pos,
+        ray_origin: origin,
+        ray_dir: dir,
+        size: (w, h),
+    };
+    (arrays, zeroed)
+}
+
+/// Writes `a` to a new HDF5 file at `path` in layout `l`.
+fn write_drt_file(path: &Path, l: Layout, a: DrtArrays) {
+    let (w, h) = a.size;
     let f = hdf5::File::create(path).unwrap();
     let put = |name: &str| l.without != Some(name);
     if put("cam_proj") {
         f.new_dataset_builder()
-            .with_data(&cam_proj)
+            .with_data(&a.cam_proj)
             .create("cam_proj")
             .unwrap();
     }
     if put("cam_k") {
         f.new_dataset_builder()
-            .with_data(&cam_k)
+            .with_data(&a.cam_k)
             .create("cam_k")
             .unwrap();
     }
     if put("mask") {
         f.new_dataset_builder()
-            .with_data(&mask)
+            .with_data(&a.mask)
             .create("mask")
             .unwrap();
     }
     if put("screen_position") {
         if l.point_grey {
             f.new_dataset_builder()
-                .with_data(&pos)
+                .with_data(&a.screen_position)
                 .create("screen_position")
                 .unwrap();
         } else {
-            let grid: Array4<f32> = pos.into_shape_with_order((l.views, h, w, 3)).unwrap();
+            let grid: Array4<f32> = a
+                .screen_position
+                .into_shape_with_order((l.views, h, w, 3))
+                .unwrap();
             f.new_dataset_builder()
                 .with_data(&grid)
                 .create("screen_position")
@@ -142,18 +180,17 @@ fn export_drt(scan: &Scan, path: &Path, l: Layout) -> usize {
     }
     if l.point_grey && put("ray_origin") {
         f.new_dataset_builder()
-            .with_data(&origin)
+            .with_data(&a.ray_origin)
             .create("ray_origin")
             .unwrap();
     }
     if l.point_grey && put("ray_dir") {
         f.new_dataset_builder()
-            .with_data(&dir)
+            .with_data(&a.ray_dir)
             .create("ray_dir")
             .unwrap();
     }
     f.close().unwrap();
-    zeroed
 }
 
 fn all_targets(scan: &Scan) -> Vec<ViewTargets> {

@@ -1,7 +1,7 @@
 //! Mesh files: round trips, foreign PLY variants, and bad input.
 
 use std::fs;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glasscan::mesh::io::{read_mesh, write_mesh, write_mesh_as, MeshFormat, MeshIoError};
 use glasscan::mesh::shapes::{icosphere, perturb_radially};
@@ -106,6 +106,18 @@ fn bad_input_gives_clear_errors() {
         "{missing}"
     );
 
+    let mut files = truncated_files_are_parse_errors(d);
+    files.extend(out_of_range_indices_name_the_face(d));
+    files.extend(non_finite_coordinates_name_the_vertex(d));
+    files.extend(unknown_formats_and_empty_meshes_are_named(d));
+    // Every message is one line.
+    for p in &files {
+        assert!(!read_err(p).to_string().contains('\n'), "{}", read_err(p));
+    }
+}
+
+/// Truncated binary and ASCII PLY files (made in `d`, returned) are parse errors.
+fn truncated_files_are_parse_errors(d: &Path) -> Vec<PathBuf> {
     // Truncated binary PLY: cut the file in the middle of the faces.
     let full = d.join("full.ply");
     write_mesh(&full, &icosphere(1.0, 2)).unwrap();
@@ -127,7 +139,11 @@ fn bad_input_gives_clear_errors() {
     let e = read_err(&cut_ascii);
     assert!(matches!(e, MeshIoError::Parse { .. }), "{e}");
 
-    // Out-of-range indices, in PLY and OBJ.
+    vec![cut, cut_ascii]
+}
+
+/// Out-of-range indices, in PLY and OBJ files (made in `d`, returned), are named.
+fn out_of_range_indices_name_the_face(d: &Path) -> Vec<PathBuf> {
     let oob = d.join("oob.ply");
     fs::write(&oob, QUAD_PLY.replace("3 3 4 0 0", "3 3 4 9 0")).unwrap();
     let e = read_err(&oob);
@@ -159,7 +175,11 @@ fn bad_input_gives_clear_errors() {
         read_err(&zero_obj)
     );
 
-    // NaN coordinates.
+    vec![oob, oob_obj]
+}
+
+/// NaN coordinates, in PLY and OBJ files (made in `d`, returned), are refused.
+fn non_finite_coordinates_name_the_vertex(d: &Path) -> Vec<PathBuf> {
     let nan = d.join("nan.ply");
     fs::write(&nan, QUAD_PLY.replace("0.5 1 0.5 1.0", "0.5 nan 0.5 1.0")).unwrap();
     let e = read_err(&nan);
@@ -173,7 +193,11 @@ fn bad_input_gives_clear_errors() {
     let e = read_err(&nan_obj);
     assert!(matches!(e, MeshIoError::NonFinite { vertex: 1, .. }), "{e}");
 
-    // Not a mesh format, not a PLY, no faces.
+    vec![nan]
+}
+
+/// Not a mesh format, not a PLY, no faces: the files made in `d` (the PLY returned).
+fn unknown_formats_and_empty_meshes_are_named(d: &Path) -> Vec<PathBuf> {
     assert!(matches!(
         read_err(&d.join("x.stl")),
         MeshIoError::UnknownFormat { .. }
@@ -185,10 +209,7 @@ fn bad_input_gives_clear_errors() {
     fs::write(&cloud, "v 0 0 0\nv 1 0 0\n").unwrap();
     assert!(read_err(&cloud).to_string().contains("no faces"));
 
-    // Every message is one line.
-    for p in [&cut, &cut_ascii, &oob, &oob_obj, &nan, &junk] {
-        assert!(!read_err(p).to_string().contains('\n'), "{}", read_err(p));
-    }
+    vec![junk]
 }
 
 #[test]
