@@ -7,7 +7,8 @@
 //! vertex normals, for that model). The yardstick replays
 //! exactly the ray batches that evaluation sent to Embree, in the same mode (packets for the
 //! camera rays), through Embree alone (closest hit, no f64 refinement, nothing done with the
-//! hits).
+//! hits). Between the two, the evaluation's forward pass alone (the same trace, nothing
+//! differentiated or summed) splits glasscan's share of the time.
 
 use std::sync::Mutex;
 use std::time::Instant;
@@ -15,7 +16,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::loss::refraction::{add_view, RefractionSettings, ViewTargets};
+use crate::loss::refraction::{add_view, trace_view, RefractionSettings, ViewTargets};
 use crate::loss::{Accumulator, Drops};
 use crate::mesh::TriMesh;
 use crate::trace::path::{MeshSurface, NormalModel, Surface, SurfaceHit};
@@ -40,12 +41,17 @@ pub struct GradientBenchReport {
     pub mean_loss: f64,
     pub seconds_per_gradient: f64,
     pub seconds_per_view: f64,
+    /// The forward pass alone (Embree's queries and the f64 hits and refractions, nothing
+    /// differentiated or summed), over all views.
+    pub seconds_trace_only: f64,
     pub seconds_embree_only: f64,
     pub camera_rays_per_s: f64,
     pub queries_per_s: f64,
     pub embree_queries_per_s: f64,
     /// queries_per_s / embree_queries_per_s.
     pub ratio: f64,
+    /// seconds_embree_only / seconds_trace_only: the forward pass's own rate against Embree's.
+    pub ratio_trace_only: f64,
 }
 
 /// A surface that records every batch it is asked to intersect.
@@ -113,13 +119,21 @@ pub fn run(
     let (used, drops, mean_loss) = (acc.used, acc.drops, acc.loss / acc.weight);
     let batches = recording.batches.into_inner().expect("not poisoned");
     let queries: usize = batches.iter().map(|(b, _)| b.len()).sum();
-    let mut t_full = Vec::new();
-    let mut t_raw = Vec::new();
+    let trace = || -> Result<usize, TraceError> {
+        views
+            .iter()
+            .map(|v| trace_view(&surface, mesh, normals.as_deref(), s, v))
+            .sum()
+    };
+    let (mut t_full, mut t_trace, mut t_raw) = (Vec::new(), Vec::new(), Vec::new());
     for r in 0..repeats.max(1) {
         let t0 = Instant::now();
         let acc = evaluate(&surface)?;
         std::hint::black_box(acc.finish(mesh));
         t_full.push(t0.elapsed().as_secs_f64());
+        let t_start = Instant::now();
+        std::hint::black_box(trace()?);
+        t_trace.push(t_start.elapsed().as_secs_f64());
         let t1 = Instant::now();
         // The same batches, as many at a time as the evaluation had threads.
         let hits: usize = batches
@@ -130,7 +144,7 @@ pub fn run(
         t_raw.push(t1.elapsed().as_secs_f64());
         progress(r + 1);
     }
-    let (full, raw) = (median(t_full), median(t_raw));
+    let (full, traced, raw) = (median(t_full), median(t_trace), median(t_raw));
     let camera_rays: usize = views.iter().map(|v| v.pixels.len()).sum();
     Ok(GradientBenchReport {
         threads: rayon::current_num_threads(),
@@ -143,10 +157,12 @@ pub fn run(
         mean_loss,
         seconds_per_gradient: full,
         seconds_per_view: full / views.len().max(1) as f64,
+        seconds_trace_only: traced,
         seconds_embree_only: raw,
         camera_rays_per_s: camera_rays as f64 / full,
         queries_per_s: queries as f64 / full,
         embree_queries_per_s: queries as f64 / raw,
         ratio: raw / full,
+        ratio_trace_only: raw / traced,
     })
 }

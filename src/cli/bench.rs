@@ -323,7 +323,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
     Ok(())
 }
 
-/// `bench gradient`'s figures: what was traced, what was dropped, the two rates and their ratio.
+/// `bench gradient`'s figures: what was traced, what was dropped, the rates and their ratios.
 fn print_gradient(
     a: &GradientArgs,
     s: &glasscan::loss::refraction::RefractionSettings,
@@ -366,6 +366,12 @@ fn print_gradient(
         "Embree alone, same queries: {:.3} s, {:.2} M queries/s",
         r.seconds_embree_only,
         r.embree_queries_per_s / 1e6
+    );
+    outln!(
+        "forward pass alone (the same trace, nothing differentiated): {:.3} s, ratio to Embree alone {:.2}; the backward pass and the sums: {:.3} s",
+        r.seconds_trace_only,
+        r.ratio_trace_only,
+        r.seconds_per_gradient - r.seconds_trace_only
     );
     outln!("ratio loss+gradient / Embree alone: {:.2}", r.ratio);
     Ok(())

@@ -716,18 +716,14 @@ pub fn add_view(
         faces: &mesh.faces,
         vertex_normals,
     };
-    let offsets = match view.pixel_axes {
-        Some(_) => footprint_offsets(s.footprint.clamp(1, MAX_FOOTPRINT)),
-        None => vec![(0.0, 0.0)],
-    };
-    let per_pixel = offsets.len();
+    let offsets = view_offsets(s, view);
     // Trace and differentiate chunk by chunk (about TRACE_CHUNK rays), each on one thread, so
     // the chunk's paths stay in cache between the two; then sum the chunks in order.
     let counting = !acc.penalty.is_empty();
     let spare = Mutex::new(std::mem::take(&mut acc.spare));
     let chunks: Vec<Contributions> = view
         .pixels
-        .par_chunks((TRACE_CHUNK / per_pixel).max(1))
+        .par_chunks(pixels_per_chunk(&offsets))
         .map(|chunk| {
             ChunkBuffers::with(|buffers| {
                 let pixels = (chunk, offsets.as_slice());
@@ -739,6 +735,48 @@ pub fn add_view(
     acc.spare = spare.into_inner().unwrap_or_default();
     acc.add_reusing(chunks);
     Ok(())
+}
+
+/// The forward pass of [`add_view`] alone: the view's rays traced through `surface` as the term
+/// traces them (Embree's queries, and the hits and refractions in f64), nothing differentiated or
+/// summed; how many rays' paths were traced to their end (none of the drops of the trace). For
+/// `bench gradient`.
+pub fn trace_view(
+    surface: &dyn Surface,
+    mesh: &TriMesh,
+    vertex_normals: Option<&[V3]>,
+    s: &RefractionSettings,
+    view: &ViewTargets,
+) -> Result<usize, TraceError> {
+    let mesh = MeshState {
+        positions: &mesh.positions,
+        faces: &mesh.faces,
+        vertex_normals,
+    };
+    let offsets = view_offsets(s, view);
+    view.pixels
+        .par_chunks(pixels_per_chunk(&offsets))
+        .map(|chunk| {
+            ChunkBuffers::with(|b| {
+                trace_chunk(surface, &mesh, s, view, (chunk, &offsets), b)?;
+                Ok(b.paths.iter().filter(|p| p.is_ok()).count())
+            })
+        })
+        .sum()
+}
+
+/// The offsets (camera pixels) of the rays of a pixel's footprint in `view`: the pixel's centre
+/// alone where the view has no pixel axes.
+fn view_offsets(s: &RefractionSettings, view: &ViewTargets) -> Vec<(f64, f64)> {
+    match view.pixel_axes {
+        Some(_) => footprint_offsets(s.footprint.clamp(1, MAX_FOOTPRINT)),
+        None => vec![(0.0, 0.0)],
+    }
+}
+
+/// Pixels a chunk holds: about [`TRACE_CHUNK`] rays of footprints of `offsets`.
+fn pixels_per_chunk(offsets: &[(f64, f64)]) -> usize {
+    (TRACE_CHUNK / offsets.len()).max(1)
 }
 
 /// What a thread reuses from chunk to chunk (and view to view, iteration to iteration), so
@@ -780,11 +818,7 @@ fn chunk_contributions(
     b: &mut ChunkBuffers,
 ) -> Result<Contributions, TraceError> {
     let per_pixel = offsets.len();
-    footprint_dirs(view, pixels, offsets, &mut b.dirs);
-    b.interfaces.clear();
-    let min_cos = |i: usize| pixels[i / per_pixel].min_cos(s);
-    let trace = (&mut b.trace, &mut b.paths, &mut b.interfaces);
-    trace_forward(surface, mesh, s, (&view.eye, &b.dirs), min_cos, trace)?;
+    trace_chunk(surface, mesh, s, view, (pixels, offsets), b)?;
     // Three vertices per refraction, each with a normal entry for vertex normals; the pixels
     // append theirs straight to the chunk's lists.
     let entries = 3 * s.max_refractions as usize * b.dirs.len();
@@ -820,6 +854,24 @@ fn chunk_contributions(
     }
     (c.grad, c.ngrad) = (g.grad, g.ngrad);
     Ok(c)
+}
+
+/// Traces the footprint rays of one chunk of a view's `pixels` (each by the rays at `offsets`
+/// from its centre) on the calling thread: their paths and interfaces into `b`.
+fn trace_chunk(
+    surface: &dyn Surface,
+    mesh: &MeshState,
+    s: &RefractionSettings,
+    view: &ViewTargets,
+    (pixels, offsets): (&[PixelTarget], &[(f64, f64)]),
+    b: &mut ChunkBuffers,
+) -> Result<(), TraceError> {
+    let per_pixel = offsets.len();
+    footprint_dirs(view, pixels, offsets, &mut b.dirs);
+    b.interfaces.clear();
+    let min_cos = |i: usize| pixels[i / per_pixel].min_cos(s);
+    let trace = (&mut b.trace, &mut b.paths, &mut b.interfaces);
+    trace_forward(surface, mesh, s, (&view.eye, &b.dirs), min_cos, trace)
 }
 
 /// The directions of the footprint rays of `pixels`, pixel by pixel (the pixel's own ray for

@@ -1,11 +1,11 @@
 //! The `glasscan` binary as a user runs it: outputs, exit codes and one-line errors.
 
-use crate::common::{glasscan, refused_in_one_line, stderr, stdout};
+use crate::common::{decoded_scan, glasscan, refused_in_one_line, stderr, stdout};
 use std::fs;
 use std::path::Path;
 
 use glasscan::mesh::io::write_mesh;
-use glasscan::mesh::shapes::{figurine, icosphere};
+use glasscan::mesh::shapes::{ellipsoid, figurine, icosphere};
 
 #[test]
 fn info_on_a_genus_1_figurine_reports_a_valid_genus_1_mesh() {
@@ -254,6 +254,47 @@ fn bench_trace_runs_and_prints_ratios() {
         "refit (dynamic)",
     ] {
         assert!(out.contains(needle), "missing '{needle}': {out}");
+    }
+}
+
+/// `bench gradient` evaluates a scan's refraction term on its true mesh: its counts hold
+/// together, and the term, its forward pass alone and Embree alone give finite ratios.
+#[test]
+fn bench_gradient_splits_the_terms_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let ellipsoid = ellipsoid(nalgebra::Vector3::new(30.0, 24.0, 20.0), 4);
+    let scan = decoded_scan(dir.path(), &ellipsoid, 2, (160, 120));
+    let reports = tempfile::tempdir().unwrap();
+    let json = reports.path().join("gradient.json");
+    let o = glasscan(&[
+        "bench",
+        "gradient",
+        "--scan",
+        scan.to_str().unwrap(),
+        "--repeats",
+        "1",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    let out = stdout(&o);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for needle in [
+        "loss + gradient:",
+        "Embree alone, same queries:",
+        "forward pass alone (the same trace, nothing differentiated):",
+        "ratio loss+gradient / Embree alone:",
+    ] {
+        assert!(out.contains(needle), "missing '{needle}': {out}");
+    }
+    let r: serde_json::Value = serde_json::from_slice(&fs::read(&json).unwrap()).unwrap();
+    let n = |k: &str| r[k].as_f64().unwrap_or_else(|| panic!("{k} in {r}"));
+    assert!(n("used") > 1000.0, "{r}");
+    assert!(
+        n("used") <= n("camera_rays") && n("camera_rays") < n("queries"),
+        "{r}"
+    );
+    for k in ["ratio", "ratio_trace_only", "seconds_trace_only"] {
+        assert!(n(k) > 0.0 && n(k).is_finite(), "{k} in {r}");
     }
 }
 
