@@ -758,7 +758,7 @@ pub fn trace_view(
         .par_chunks(pixels_per_chunk(&offsets))
         .map(|chunk| {
             ChunkBuffers::with(|b| {
-                trace_chunk(surface, &mesh, s, view, (chunk, &offsets), b)?;
+                trace_chunk_forward(surface, &mesh, s, view, (chunk, &offsets), b)?;
                 Ok(b.paths.iter().filter(|p| p.is_ok()).count())
             })
         })
@@ -818,7 +818,7 @@ fn chunk_contributions(
     b: &mut ChunkBuffers,
 ) -> Result<Contributions, TraceError> {
     let per_pixel = offsets.len();
-    trace_chunk(surface, mesh, s, view, (pixels, offsets), b)?;
+    trace_chunk_forward(surface, mesh, s, view, (pixels, offsets), b)?;
     // Three vertices per refraction, each with a normal entry for vertex normals; the pixels
     // append theirs straight to the chunk's lists.
     let entries = 3 * s.max_refractions as usize * b.dirs.len();
@@ -858,7 +858,7 @@ fn chunk_contributions(
 
 /// Traces the footprint rays of one chunk of a view's `pixels` (each by the rays at `offsets`
 /// from its centre) on the calling thread: their paths and interfaces into `b`.
-fn trace_chunk(
+fn trace_chunk_forward(
     surface: &dyn Surface,
     mesh: &MeshState,
     s: &RefractionSettings,
