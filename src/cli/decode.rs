@@ -87,6 +87,7 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
     })?;
     bar.finish_and_clear();
     let flat_faces_hint = outcome.flat_faces_suggested(a.flat_faces);
+    let min_light_hint = outcome.min_light_suggested(a.min_light, scan.config.ior.is_auto());
     let summaries = outcome.views;
     let object: usize = summaries.iter().map(|s| s.object_pixels).sum();
     let of_object = |share: fn(&ViewSummary) -> f64| -> f64 {
@@ -113,6 +114,11 @@ pub fn run(a: &DecodeArgs) -> Result<()> {
         outln!(
             "hint: through {:.0} % of the object's inside the monitor shows barely shifted (flat, nearly parallel faces): if the object has no sharp edges (a block, a slab), decode again with --flat-faces, whose outlines lie closer to the truth there (docs/decisions.md#outlines-beside-flat-glass)",
             100.0 * share
+        );
+    }
+    if min_light_hint {
+        outln!(
+            "hint: the index is to be estimated (ior = \"auto\") and the glass is curved: points decoded from light that split on its way bias the estimate low; decode again with --min-light 0.7 (glasscan's simulated pig, dog and horse at 1.50: estimates 0.003–0.018 nearer, `accurate` 14–32 % more accurate; docs/decisions.md#points-from-light-that-split)"
         );
     }
     print_blur(&scan, outcome.blur)?;

@@ -330,6 +330,18 @@ impl DecodeOutcome {
         let share = flat_glass_share(&self.views)?;
         (!flat_faces && share >= FLAT_FACED_SCAN_SHARE).then_some(share)
     }
+
+    /// Whether a decode without a light rule (`min_light` 0) of a scan whose index is to be
+    /// estimated (`ior_auto`) should have one ([`DecodeOptions::min_light`]): the object is curved,
+    /// its inside showing the monitor barely shifted through less than
+    /// [`FLAT_FACED_SCAN_SHARE`] (which, like the rule, needs the background captures). Points
+    /// from light that split bias the estimate low there; on flat faces seen edge-on the rule
+    /// would take the only rays that hold them.
+    pub fn min_light_suggested(&self, min_light: f32, ior_auto: bool) -> bool {
+        ior_auto
+            && min_light == 0.0
+            && flat_glass_share(&self.views).is_some_and(|s| s < FLAT_FACED_SCAN_SHARE)
+    }
 }
 
 /// Refuses a decode whose images would not fit the memory budget: per camera pixel it holds the

@@ -947,4 +947,33 @@ fn flat_faces_moves_a_slabs_outline_out_and_leaves_a_curved_ones() {
     eprintln!("ellipsoid's outline by area: {plain:+.3} px, with --flat-faces {flat:+.3} px");
     assert!((flat - plain).abs() < 0.01, "{plain} → {flat}");
     assert!(!hinted, "the ellipsoid's decode suggests --flat-faces");
+    // With the index to be estimated, the curved object's decode suggests the light rule, the
+    // flat one's does not, nor a decode that has the rule.
+    for scan in [&slab, &round] {
+        estimate_the_index(scan);
+    }
+    assert!(
+        !min_light_hinted(&slab, &[]),
+        "the slab's decode suggests --min-light"
+    );
+    assert!(
+        min_light_hinted(&round, &[]),
+        "the ellipsoid's decode does not suggest --min-light"
+    );
+    assert!(!min_light_hinted(&round, &["--min-light", "0.7"]));
+}
+
+/// Sets `scan`'s index to be estimated (`ior = "auto"` in its scan.toml).
+fn estimate_the_index(scan: &Path) {
+    let toml = scan.join("scan.toml");
+    let text = std::fs::read_to_string(&toml).unwrap();
+    let line = text.lines().find(|l| l.starts_with("ior = ")).unwrap();
+    std::fs::write(&toml, text.replace(line, "ior = \"auto\"")).unwrap();
+}
+
+/// Whether `decode` (with `extra` options) suggests `--min-light`.
+fn min_light_hinted(scan: &Path, extra: &[&str]) -> bool {
+    compared_decode(scan, extra)
+        .lines()
+        .any(|l| l.contains("decode again with --min-light 0.7"))
 }
