@@ -1,6 +1,6 @@
 //! The `glasscan` binary as a user runs it: outputs, exit codes and one-line errors.
 
-use crate::common::{decoded_scan, glasscan, refused_in_one_line, stderr, stdout};
+use crate::common::{decoded_scan, glasscan, ok, refused_in_one_line, stderr, stdout};
 use std::fs;
 use std::path::Path;
 
@@ -245,14 +245,21 @@ fn bench_trace_runs_and_prints_ratios() {
         "--seconds",
         "0.01",
     ]);
-    let out = stdout(&o);
-    assert!(o.status.success(), "{}", stderr(&o));
-    for needle in [
-        "camera rays, packets of 8",
-        "inner rays",
-        "ratio packets / one by one",
-        "refit (dynamic)",
-    ] {
+    assert_prints(
+        &o,
+        &[
+            "camera rays, packets of 8",
+            "inner rays",
+            "ratio packets / one by one",
+            "refit (dynamic)",
+        ],
+    );
+}
+
+/// Asserts that the command `o` succeeded and printed every one of `needles`.
+fn assert_prints(o: &std::process::Output, needles: &[&str]) {
+    let out = ok(o);
+    for needle in needles {
         assert!(out.contains(needle), "missing '{needle}': {out}");
     }
 }
@@ -276,16 +283,15 @@ fn bench_gradient_splits_the_terms_time() {
         "--json",
         json.to_str().unwrap(),
     ]);
-    let out = stdout(&o);
-    assert!(o.status.success(), "{}", stderr(&o));
-    for needle in [
-        "loss + gradient:",
-        "Embree alone, same queries:",
-        "forward pass alone (the same trace, nothing differentiated):",
-        "ratio loss+gradient / Embree alone:",
-    ] {
-        assert!(out.contains(needle), "missing '{needle}': {out}");
-    }
+    assert_prints(
+        &o,
+        &[
+            "loss + gradient:",
+            "Embree alone, same queries:",
+            "forward pass alone (the same trace, nothing differentiated):",
+            "ratio loss+gradient / Embree alone:",
+        ],
+    );
     let r: serde_json::Value = serde_json::from_slice(&fs::read(&json).unwrap()).unwrap();
     let n = |k: &str| r[k].as_f64().unwrap_or_else(|| panic!("{k} in {r}"));
     assert!(n("used") > 1000.0, "{r}");
