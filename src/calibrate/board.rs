@@ -56,47 +56,47 @@ impl Board {
     /// 1. OpenCV's classic detector (adaptive threshold, normalised image) without its fast
     ///    check, which is meant for skipping video frames and rejects small boards in stills;
     ///    failing that, OpenCV's sector-based detector (`findChessboardCornersSB`);
-    /// 2. the classic corners refined by `cornerSubPix` in a window sized from the board's own
-    ///    squares ([`subpixel_half_window`]), never wider than a square;
+    /// 2. the corners (either detector's) refined by `cornerSubPix` in a window sized from the
+    ///    spacing of the board's own corners ([`corner_spacing_px`], [`subpixel_half_window`]),
+    ///    so that it never reaches a neighbouring corner;
     /// 3. the order turned by 180° where needed so that the square spanned by the first two
     ///    rows' first two corners is the darker one ([`orient_dark_first`]): the board frame
     ///    does not flip between images.
     pub fn find_corners(&self, image: &Mat) -> Result<Option<Vec<Point2<f64>>>> {
-        let Some((corners, refine)) = self.detect(image)? else {
+        let Some(corners) = self.detect(image)? else {
             return Ok(None);
         };
-        let mut corners: Vec<Point2<f64>> = corners
+        let corners: Vec<Point2<f64>> = corners
             .iter()
             .map(|p| Point2::new(p.x as f64, p.y as f64))
             .collect();
-        if refine {
-            corners = refine_corners(image, &corners, self.cols as usize)?;
-        }
+        let mut corners = refine_corners(image, &corners, self.cols as usize)?;
         orient_dark_first(image, &mut corners, self.cols as usize, self.rows as usize)?;
         Ok(Some(corners))
     }
 
-    /// Step 1 of [`find_corners`](Self::find_corners): the raw corners and whether they still
-    /// need sub-pixel refinement (the sector-based detector's are already refined).
-    fn detect(&self, image: &Mat) -> Result<Option<(Vector<Point2f>, bool)>> {
+    /// Step 1 of [`find_corners`](Self::find_corners): the raw corners. (The sector-based
+    /// detector's come refined, but on small, oblique boards about ten times less precisely
+    /// than `cornerSubPix` refines them.)
+    fn detect(&self, image: &Mat) -> Result<Option<Vector<Point2f>>> {
         use opencv::calib3d as c3;
         let size = Size::new(self.cols as i32, self.rows as i32);
         let mut corners = Vector::<Point2f>::new();
         let flags = c3::CALIB_CB_ADAPTIVE_THRESH | c3::CALIB_CB_NORMALIZE_IMAGE;
         if c3::find_chessboard_corners(image, size, &mut corners, flags)? {
-            return Ok(Some((corners, true)));
+            return Ok(Some(corners));
         }
         let mut corners = Vector::<Point2f>::new();
         let flags = c3::CALIB_CB_NORMALIZE_IMAGE | c3::CALIB_CB_EXHAUSTIVE | c3::CALIB_CB_ACCURACY;
         if c3::find_chessboard_corners_sb(image, size, &mut corners, flags)? {
-            return Ok(Some((corners, false)));
+            return Ok(Some(corners));
         }
         Ok(None)
     }
 }
 
-/// Half-width w (pixels) of the `cornerSubPix` search window for a board whose smallest square
-/// side is `square_px` pixels ([`square_side_px`]): half the side, rounded, so that the window
+/// Half-width w (pixels) of the `cornerSubPix` search window for a board whose corners lie
+/// `square_px` pixels apart at the closest ([`corner_spacing_px`]): half that, rounded, so that the window
 /// spans about one square and never reaches the neighbouring corners (a wider one lets their
 /// edges pull the refined corner between them); at least 2 and at most OpenCV's sample's 11
 /// (reached from 21 px squares on, so that large boards are refined as OpenCV's sample refines
@@ -121,10 +121,28 @@ pub fn square_side_px(corners: &[Point2<f64>], cols: usize) -> f64 {
     side
 }
 
+/// The shortest distance (pixels) from a corner of a row-major grid of `cols` corners a row to
+/// any of its eight neighbours: [`square_side_px`], or less on a board seen so obliquely that its
+/// squares are sheared and the short diagonal of a square is shorter than its sides.
+pub fn corner_spacing_px(corners: &[Point2<f64>], cols: usize) -> f64 {
+    let rows = corners.len() / cols;
+    let mut spacing = square_side_px(corners, cols);
+    for r in 0..rows.saturating_sub(1) {
+        for c in 0..cols - 1 {
+            let (a, b) = (r * cols + c, r * cols + c + 1);
+            let (below_a, below_b) = (a + cols, b + cols);
+            spacing = spacing
+                .min((corners[below_b] - corners[a]).norm())
+                .min((corners[below_a] - corners[b]).norm());
+        }
+    }
+    spacing
+}
+
 /// Step 2 of [`Board::find_corners`]: `cornerSubPix` with [`subpixel_half_window`] of the
-/// board's square side.
+/// corners' spacing ([`corner_spacing_px`]).
 fn refine_corners(image: &Mat, corners: &[Point2<f64>], cols: usize) -> Result<Vec<Point2<f64>>> {
-    let w = subpixel_half_window(square_side_px(corners, cols));
+    let w = subpixel_half_window(corner_spacing_px(corners, cols));
     let mut cv: Vector<Point2f> = corners
         .iter()
         .map(|p| Point2f::new(p.x as f32, p.y as f32))

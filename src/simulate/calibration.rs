@@ -7,7 +7,8 @@
 //!   turned to each angle of `calibration/setup.json`;
 //! - the background capture (`captures/background/`) for the monitor pose;
 //! - `calibration/setup.json`: the boards (inner corners, square sizes) and the turntable angles,
-//!   with the commands that calibrate from them.
+//!   with the commands that calibrate from them (into the scan's own rig files);
+//! - `calibration/truth/`: the rig's true camera, screen and turntable files, kept there.
 //!
 //! Images are area-sampled (6 × 6 per pixel), with the scan's sensor noise and blur.
 
@@ -22,7 +23,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{write_sensor_image, SimulateOptions};
 use crate::calibrate::board::Board;
-use crate::rig::Camera;
+use crate::rig::{calib_io, Camera};
 use crate::scan::Scan;
 use crate::util::scatter_seed;
 
@@ -85,8 +86,8 @@ pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) ->
     let dir = scan.dir.join("calibration");
     let seed = scatter_seed(o.seed);
     let poses = camera_board_poses(cam, &board, o, seed ^ 0xca1b)?;
+    let turned = turntable_board_poses(scan, &small, o)?;
     render_set(&dir.join("camera"), &poses, &board, cam, o, seed ^ 0x5eed)?;
-    let turned = turntable_board_poses(scan, &small)?;
     render_set(
         &dir.join("turntable"),
         &turned,
@@ -95,7 +96,19 @@ pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) ->
         o,
         seed ^ 0x7a61,
     )?;
+    write_true_rig(scan, &dir.join("truth"))?;
     write_setup(&dir, out, &board, &small)
+}
+
+/// The rig the images were rendered with, as `calibrate` writes it, into `dir`: `setup.json`'s
+/// commands overwrite the scan's own files, and these stay to compare the calibration with.
+fn write_true_rig(scan: &Scan, dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let t = &scan.turntable;
+    calib_io::write_camera(&dir.join("camera.yml"), &scan.camera, 0.0, None)?;
+    calib_io::write_screen(&dir.join("screen.yml"), &scan.screen)?;
+    calib_io::write_turntable_axis(&dir.join("turntable.yml"), &t.axis_point, &t.axis_dir)?;
+    Ok(())
 }
 
 /// The camera's and the turntable's boards of `o.boards`. A board sized with the rig has a
@@ -104,21 +117,31 @@ pub fn write_calibration_images(scan: &Scan, out: &Path, o: &SimulateOptions) ->
 /// stays in view on the turntable; sides rounded to 0.1 mm.
 fn boards(cam: &Camera, o: &SimulateOptions) -> (Board, Board) {
     let b = &o.boards;
-    let with_rig = |share: f64| {
-        let squares = (b.cols + 3) as f64;
-        (share * cam.width as f64 * o.camera_distance_mm / cam.fx / squares * 10.0).round() / 10.0
-    };
-    let camera_square = b.camera_square_mm.unwrap_or_else(|| with_rig(0.6));
+    let camera_square = b
+        .camera_square_mm
+        .unwrap_or_else(|| square_with_rig(cam, o, CAMERA_BOARD_SHARE));
     let turntable_square = b
         .turntable_square_mm
         .or(b.camera_square_mm)
-        .unwrap_or_else(|| with_rig(0.5));
+        .unwrap_or_else(|| square_with_rig(cam, o, TURNTABLE_BOARD_SHARE));
     let board = |square_mm| Board {
         cols: b.cols,
         rows: b.rows,
         square_mm,
     };
     (board(camera_square), board(turntable_square))
+}
+
+/// Shares of the image width at the axis that a board sized with the rig spans with its
+/// margins: the camera's board, the turntable's.
+const CAMERA_BOARD_SHARE: f64 = 0.6;
+const TURNTABLE_BOARD_SHARE: f64 = 0.5;
+
+/// The square side (mm, rounded to 0.1) of a board of `o.boards`' corners whose width with
+/// margins (cols + 3 squares) spans `share` of the image width at the axis distance.
+fn square_with_rig(cam: &Camera, o: &SimulateOptions, share: f64) -> f64 {
+    let squares = (o.boards.cols + 3) as f64;
+    (share * cam.width as f64 * o.camera_distance_mm / cam.fx / squares * 10.0).round() / 10.0
 }
 
 /// `o.boards.camera_images` random poses (board → camera) of `board` held in front of the
@@ -155,9 +178,10 @@ fn camera_board_poses(
     }
     if poses.len() < wanted {
         bail!(
-            "cannot place the {} mm board in the camera's view at 0.45–1.2 × {} mm: give a smaller --square-mm or a larger --camera-distance-mm",
+            "cannot place the {} mm board in the camera's view at 0.45–1.2 × {} mm: leave out --square-mm (the board is then sized with the rig: {} mm here), give a smaller one or a larger --camera-distance-mm",
             board.square_mm,
-            o.camera_distance_mm
+            o.camera_distance_mm,
+            square_with_rig(cam, o, CAMERA_BOARD_SHARE)
         );
     }
     Ok(poses)
@@ -166,7 +190,11 @@ fn camera_board_poses(
 /// The poses (board → camera) of `small` standing on the turntable, facing the camera at 0°,
 /// 10 mm beside the axis and 30 mm in front of it, at each of [`TURNTABLE_ANGLES`]; an error
 /// when it leaves the camera's view.
-fn turntable_board_poses(scan: &Scan, small: &Board) -> Result<Vec<Isometry3<f64>>> {
+fn turntable_board_poses(
+    scan: &Scan,
+    small: &Board,
+    o: &SimulateOptions,
+) -> Result<Vec<Isometry3<f64>>> {
     let s = small.square_mm;
     let upright = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
     let in_world = Isometry3::from_parts(
@@ -189,9 +217,10 @@ fn turntable_board_poses(scan: &Scan, small: &Board) -> Result<Vec<Isometry3<f64
         .collect();
     if let Some(k) = turned.iter().position(|p| !in_view(&scan.camera, p, small)) {
         bail!(
-            "the turntable's {} mm board leaves the camera's view at {}° (give a smaller --turntable-square-mm or a larger --camera-distance-mm)",
+            "the turntable's {} mm board leaves the camera's view at {}°: give a smaller --turntable-square-mm (sized with the rig: {} mm here) or a larger --camera-distance-mm",
             small.square_mm,
-            TURNTABLE_ANGLES[k]
+            TURNTABLE_ANGLES[k],
+            square_with_rig(&scan.camera, o, TURNTABLE_BOARD_SHARE)
         );
     }
     Ok(turned)
