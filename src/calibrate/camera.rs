@@ -1,7 +1,8 @@
 //! `calibrate camera`: intrinsics and lens distortion from chessboard images, through OpenCV's
 //! `calibrateCamera` with the flags of OpenCV's calibration sample, so that its results and its
 //! YAML keys match the sample's. Corners are found as [`Board::find_corners`] says: every board
-//! OpenCV finds in a still, refined in a window sized from the board's squares.
+//! OpenCV finds in a still, refined in a window sized from the spacing of its corners. Unlike
+//! the sample, a first fit's outlier images are left out of a second ([`calibrate_camera`]).
 
 use std::path::PathBuf;
 
@@ -22,6 +23,9 @@ pub struct CameraOptions {
     /// k3 = 0 (`CALIB_FIX_K3`): for narrow lenses, whose image corners reach too small a radius
     /// for the sixth-order term to be told apart from k1 and k2.
     pub fix_k3: bool,
+    /// Keep every image in the fit; otherwise the outliers of a first fit are left out of the
+    /// second ([`calibrate_camera`]).
+    pub keep_outliers: bool,
 }
 
 impl CameraOptions {
@@ -47,9 +51,12 @@ pub struct ViewResult {
     pub path: PathBuf,
     /// RMS reprojection error of its corners, pixels.
     pub error_px: f64,
-    /// Flagged: its error exceeds 2.5 × the median view's.
+    /// Flagged: its error exceeds [`OUTLIER_FACTOR`] × the median view's.
     pub outlier: bool,
 }
+
+/// An image whose reprojection error exceeds this many times the median image's is an outlier.
+pub const OUTLIER_FACTOR: f64 = 2.5;
 
 /// A camera calibration: the camera, how well it fits, and the images used and skipped.
 #[derive(Clone, Debug)]
@@ -58,6 +65,8 @@ pub struct CameraCalibration {
     /// RMS reprojection error over every corner, pixels (OpenCV's `avg_reprojection_error`).
     pub rms_px: f64,
     pub views: Vec<ViewResult>,
+    /// Images the first fit found outliers, left out of this one (with that fit's errors).
+    pub left_out: Vec<ViewResult>,
     /// Images in which the whole board was not found.
     pub skipped: Vec<PathBuf>,
     /// What the YAML file records beyond the camera.
@@ -82,7 +91,10 @@ impl CameraCalibration {
 /// The smallest number of usable board images.
 pub const MIN_IMAGES: usize = 3;
 
-/// Calibrates from `images` (grey, all `size` = (width, height)).
+/// Calibrates from `images` (grey, all `size` = (width, height)). Unless `o.keep_outliers`, a
+/// first fit's outliers are left out and the camera fitted again without them, when they are at
+/// most a quarter of the boards found (more is a set that disagrees throughout, not a few bad
+/// images) and at least [`MIN_IMAGES`] remain: one round, so that a fit is never pared down.
 pub fn calibrate_camera(
     images: &[BoardImage],
     size: (u32, u32),
@@ -90,23 +102,20 @@ pub fn calibrate_camera(
     o: &CameraOptions,
     progress: impl FnMut(usize),
 ) -> Result<CameraCalibration> {
-    let found = find_boards(images, board, progress)?;
-    let solved = solve(&found, size, o)?;
-    let median = crate::util::median(solved.errors.clone());
-    let views = found
-        .used
-        .iter()
-        .zip(&solved.errors)
-        .map(|(p, &e)| ViewResult {
-            path: p.clone(),
-            error_px: e,
-            outlier: e > 2.5 * median,
-        })
-        .collect();
+    let mut found = find_boards(images, board, progress)?;
+    let mut solved = solve(&found, size, o)?;
+    let mut left_out = Vec::new();
+    if !o.keep_outliers {
+        left_out = leave_out_outliers(&mut found, &solved.errors);
+        if !left_out.is_empty() {
+            solved = solve(&found, size, o)?;
+        }
+    }
     Ok(CameraCalibration {
         camera: solved.camera,
         rms_px: solved.rms,
-        views,
+        views: view_results(&found.used, &solved.errors),
+        left_out,
         skipped: found.skipped,
         square_px: crate::util::median(found.square_px.clone()),
         record: CameraRecord {
@@ -120,6 +129,45 @@ pub fn calibrate_camera(
             extrinsics: solved.extrinsics,
         },
     })
+}
+
+/// Each used image's error, flagged above [`OUTLIER_FACTOR`] × the median.
+fn view_results(used: &[PathBuf], errors: &[f64]) -> Vec<ViewResult> {
+    let median = crate::util::median(errors.to_vec());
+    used.iter()
+        .zip(errors)
+        .map(|(p, &e)| ViewResult {
+            path: p.clone(),
+            error_px: e,
+            outlier: e > OUTLIER_FACTOR * median,
+        })
+        .collect()
+}
+
+/// Removes the outliers among `found`'s boards (by `errors`, a fit's per-image errors) when
+/// they are at most a quarter of them and at least [`MIN_IMAGES`] remain; returns them.
+fn leave_out_outliers(found: &mut FoundBoards, errors: &[f64]) -> Vec<ViewResult> {
+    let views = view_results(&found.used, errors);
+    let outliers = views.iter().filter(|v| v.outlier).count();
+    if outliers == 0 || 4 * outliers > views.len() || views.len() - outliers < MIN_IMAGES {
+        return Vec::new();
+    }
+    let keep: Vec<bool> = views.iter().map(|v| !v.outlier).collect();
+    found.object_points = kept(found.object_points.iter(), &keep);
+    found.image_points = kept(found.image_points.iter(), &keep);
+    found.used = kept(std::mem::take(&mut found.used), &keep);
+    found.square_px = kept(found.square_px.iter().copied(), &keep);
+    views.into_iter().filter(|v| v.outlier).collect()
+}
+
+/// The `items` whose entry in `keep` is true, in order.
+fn kept<T, C: FromIterator<T>>(items: impl IntoIterator<Item = T>, keep: &[bool]) -> C {
+    items
+        .into_iter()
+        .zip(keep)
+        .filter(|&(_, &k)| k)
+        .map(|(x, _)| x)
+        .collect()
 }
 
 /// The boards found in the images: OpenCV's point lists and the images used and skipped.
@@ -237,4 +285,43 @@ fn solve(found: &FoundBoards, size: (u32, u32), o: &CameraOptions) -> Result<Sol
         errors: per_view.data_typed::<f64>()?.to_vec(),
         extrinsics,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `n` found boards (without corners), named by their index.
+    fn boards(n: usize) -> FoundBoards {
+        FoundBoards {
+            object_points: (0..n).map(|_| Vector::new()).collect(),
+            image_points: (0..n).map(|_| Vector::new()).collect(),
+            used: (0..n).map(|k| PathBuf::from(k.to_string())).collect(),
+            skipped: Vec::new(),
+            square_px: (0..n).map(|k| k as f64).collect(),
+        }
+    }
+
+    #[test]
+    fn outliers_are_left_out_only_when_few() {
+        let mut found = boards(8);
+        let errors = [0.1, 0.1, 0.12, 0.09, 0.1, 0.5, 0.11, 0.1];
+        let left = leave_out_outliers(&mut found, &errors);
+        assert_eq!(left.len(), 1);
+        assert_eq!(left[0].path, PathBuf::from("5"));
+        assert_eq!(found.used.len(), 7);
+        assert_eq!(
+            (found.object_points.len(), found.image_points.len()),
+            (7, 7)
+        );
+        assert_eq!(found.square_px, [0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 7.0]);
+        // Three of eight are more than a quarter: a set that disagrees, kept whole.
+        let mut found = boards(8);
+        let errors = [0.1, 0.5, 0.12, 0.09, 0.6, 0.5, 0.11, 0.1];
+        assert!(leave_out_outliers(&mut found, &errors).is_empty());
+        assert_eq!(found.used.len(), 8);
+        // No outlier, nothing left out.
+        let mut found = boards(4);
+        assert!(leave_out_outliers(&mut found, &[0.1, 0.2, 0.15, 0.12]).is_empty());
+    }
 }

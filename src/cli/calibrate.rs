@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 
 use glasscan::calibrate::board::{read_images, Board};
-use glasscan::calibrate::camera::{calibrate_camera, CameraOptions};
+use glasscan::calibrate::camera::{calibrate_camera, CameraOptions, OUTLIER_FACTOR};
 use glasscan::calibrate::screen;
 use glasscan::calibrate::turntable::calibrate_turntable;
 use glasscan::rig::calib_io;
@@ -64,6 +64,11 @@ pub struct CameraArgs {
     /// Hold k3 at 0 (advised for narrow lenses: the fit reports k3 in the hundreds otherwise).
     #[arg(long = "fix-k3")]
     pub fix_k3: bool,
+    /// Keep every image in the fit: without it, the images a first fit finds outliers (error
+    /// above 2.5 × the median image's) are left out and the camera fitted again, when they are
+    /// at most a quarter of the boards found
+    #[arg(long = "keep-outliers")]
+    pub keep_outliers: bool,
     /// Write the camera file even when the fit is outside the trusted limits (a warning then).
     #[arg(long)]
     pub force: bool,
@@ -140,6 +145,7 @@ fn camera(a: &CameraArgs) -> Result<()> {
         fix_aspect_ratio: a.fix_aspect_ratio,
         zero_tangent: a.zero_tangent,
         fix_k3: a.fix_k3,
+        keep_outliers: a.keep_outliers,
     };
     let b = bar("corners", images.len());
     let cal = calibrate_camera(&images, size, &board, &o, |_| b.inc(1))?;
@@ -148,24 +154,31 @@ fn camera(a: &CameraArgs) -> Result<()> {
         eprintln!("warning: {}: board not found, image skipped", p.display());
     }
     for v in &cal.views {
+        let flag = if v.outlier {
+            format!("  <- outlier (error > {OUTLIER_FACTOR} × the median): check the image, or leave it out")
+        } else {
+            String::new()
+        };
+        outln!("{:>8.3} px  {}{flag}", v.error_px, v.path.display());
+    }
+    for v in &cal.left_out {
         outln!(
-            "{:>8.3} px  {}{}",
+            "{:>8.3} px  {}  <- left out: error > {OUTLIER_FACTOR} × the median in a first fit (--keep-outliers keeps it)",
             v.error_px,
-            v.path.display(),
-            if v.outlier {
-                "  <- outlier (error > 2.5 × the median): check the image, or leave it out"
-            } else {
-                ""
-            }
+            v.path.display()
         );
     }
     let c = &cal.camera;
     check_fit(cal.problem(), a.force, "camera")?;
     calib_io::write_camera(&a.output, c, cal.rms_px, Some(&cal.record))?;
     outln!(
-        "{} of {} images used; fx {:.3} fy {:.3} cx {:.3} cy {:.3} px; k1 {:.5} k2 {:.5} p1 {:.6} p2 {:.6} k3 {:.5}; RMS reprojection error {:.4} px",
+        "{} of {} images used{}; fx {:.3} fy {:.3} cx {:.3} cy {:.3} px; k1 {:.5} k2 {:.5} p1 {:.6} p2 {:.6} k3 {:.5}; RMS reprojection error {:.4} px",
         cal.views.len(),
         images.len(),
+        match cal.left_out.len() {
+            0 => String::new(),
+            n => format!(" ({n} left out as outliers)"),
+        },
         c.fx,
         c.fy,
         c.cx,

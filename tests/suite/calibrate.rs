@@ -56,25 +56,34 @@ fn opencv_values(path: &Path) -> ([f64; 4], Vec<f64>, f64, i32) {
     ([k[0], k[4], k[2], k[5]], d, err, n)
 }
 
-#[test]
-fn opencv_sample_images_match_opencvs_own_calibration() {
+/// `calibrate camera` on OpenCV's sample images (`--fix-aspect-ratio`, as its sample), with
+/// `extra` arguments, into `yml`.
+fn calibrate_opencv_sample(yml: &Path, extra: &[&str]) -> std::process::Output {
     let data = opencv_samples();
-    let out = tempfile::tempdir().unwrap();
-    let yml = out.path().join("left.yml");
-    let o = glasscan(&[
-        "calibrate",
-        "camera",
-        "--images",
-        data.join("left[0-9]*.jpg").to_str().unwrap(),
+    let pattern = data.join("left[0-9]*.jpg");
+    let mut args = vec!["calibrate", "camera", "--images", pattern.to_str().unwrap()];
+    args.extend([
         "--board",
         "9x6",
         "--square-mm",
         "0.025",
         "--fix-aspect-ratio",
         "-o",
-        yml.to_str().unwrap(),
     ]);
+    args.push(yml.to_str().unwrap());
+    args.extend(extra);
+    let o = glasscan(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
+#[test]
+fn opencv_sample_images_match_opencvs_own_calibration() {
+    let data = opencv_samples();
+    let out = tempfile::tempdir().unwrap();
+    let yml = out.path().join("left.yml");
+    // OpenCV's sample keeps every image.
+    let o = calibrate_opencv_sample(&yml, &["--keep-outliers"]);
     let ours = opencv_values(&yml);
     let reference = opencv_values(&data.join("left_intrinsics.yml"));
     assert_eq!(ours.3, 13, "images used");
@@ -120,6 +129,24 @@ fn opencv_sample_images_match_opencvs_own_calibration() {
         flagged.len() == 1 && flagged[0].contains("left02.jpg"),
         "{stdout}"
     );
+    // By default it is left out of a second fit, which the other 12 images fit better.
+    let o = calibrate_opencv_sample(&yml, &[]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let left_out: Vec<&str> = stdout
+        .lines()
+        .filter(|l| l.contains("<- left out"))
+        .collect();
+    assert!(
+        left_out.len() == 1 && left_out[0].contains("left02.jpg"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("12 of 13 images used (1 left out as outliers)"),
+        "{stdout}"
+    );
+    let without = opencv_values(&yml);
+    assert_eq!(without.3, 12, "images used");
+    assert!(without.2 < 0.8 * ours.2, "{without:?} vs {ours:?}");
 }
 
 /// A simulated rig with calibration images (one view of a ball), made once.
@@ -540,8 +567,10 @@ fn small_oblique_boards_calibrate_the_camera_to_its_truth() {
     };
     let pattern = dir.path().join("calibration/camera/*.png");
     let (images, size) = read_images(pattern.to_str().unwrap()).unwrap();
+    // Every board in the fit: the refinement alone is under test.
     let options = CameraOptions {
         zero_tangent: true,
+        keep_outliers: true,
         ..Default::default()
     };
     let cal = calibrate_camera(&images, size, &board, &options, |_| ()).unwrap();
