@@ -149,19 +149,25 @@ fn opencv_sample_images_match_opencvs_own_calibration() {
     assert!(without.2 < 0.8 * ours.2, "{without:?} vs {ours:?}");
 }
 
+/// The options of [`rig`]'s simulation, with `boards`.
+fn rig_options(boards: CalibrationBoards) -> SimulateOptions {
+    SimulateOptions {
+        views: 1,
+        spp: 1,
+        decoded_only: true,
+        calibration_images: true,
+        distortion: [-0.1, 0.05, 0.0, 0.0, 0.0],
+        boards,
+        ..Default::default()
+    }
+}
+
 /// A simulated rig with calibration images (one view of a ball), made once.
 fn rig() -> &'static (tempfile::TempDir, Scan) {
     static RIG: OnceLock<(tempfile::TempDir, Scan)> = OnceLock::new();
     RIG.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
-        let o = SimulateOptions {
-            views: 1,
-            spp: 1,
-            decoded_only: true,
-            calibration_images: true,
-            distortion: [-0.1, 0.05, 0.0, 0.0, 0.0],
-            ..Default::default()
-        };
+        let o = rig_options(CalibrationBoards::default());
         simulate(&icosphere(60.0, 3), dir.path(), &o, |_| ()).unwrap();
         let scan = Scan::open(dir.path()).unwrap();
         (dir, scan)
@@ -207,19 +213,11 @@ fn a_board_too_large_for_the_rig_is_refused_with_the_rigs_size() {
     ] {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("scan");
-        let o = SimulateOptions {
-            views: 1,
-            spp: 1,
-            decoded_only: true,
-            calibration_images: true,
-            distortion: [-0.1, 0.05, 0.0, 0.0, 0.0],
-            boards: CalibrationBoards {
-                camera_square_mm: camera,
-                turntable_square_mm: turntable,
-                ..Default::default()
-            },
+        let o = rig_options(CalibrationBoards {
+            camera_square_mm: camera,
+            turntable_square_mm: turntable,
             ..Default::default()
-        };
+        });
         let err = simulate(&icosphere(60.0, 3), &out, &o, |_| ()).unwrap_err();
         let msg = format!("{err:#}");
         let rigs = format!("sized with the rig: {} mm here", square_mm(truth, set));
