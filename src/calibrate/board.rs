@@ -96,13 +96,13 @@ impl Board {
 }
 
 /// Half-width w (pixels) of the `cornerSubPix` search window for a board whose corners lie
-/// `square_px` pixels apart at the closest ([`corner_spacing_px`]): half that, rounded, so that the window
-/// spans about one square and never reaches the neighbouring corners (a wider one lets their
-/// edges pull the refined corner between them); at least 2 and at most OpenCV's sample's 11
-/// (reached from 21 px squares on, so that large boards are refined as OpenCV's sample refines
-/// them).
-pub fn subpixel_half_window(square_px: f64) -> i32 {
-    ((square_px / 2.0).round() as i32).clamp(2, 11)
+/// `spacing_px` pixels apart at the closest ([`corner_spacing_px`]): half that, rounded, so that
+/// the window spans about one square and never reaches the neighbouring corners (a wider one
+/// lets their edges pull the refined corner between them); at least 2 and at most OpenCV's
+/// sample's 11 (reached from 21 px squares on, so that large boards are refined as OpenCV's
+/// sample refines them).
+pub fn subpixel_half_window(spacing_px: f64) -> i32 {
+    ((spacing_px / 2.0).round() as i32).clamp(2, 11)
 }
 
 /// The board's smallest square side in the image, pixels: the shortest distance between
@@ -121,9 +121,10 @@ pub fn square_side_px(corners: &[Point2<f64>], cols: usize) -> f64 {
     side
 }
 
-/// The shortest distance (pixels) from a corner of a row-major grid of `cols` corners a row to
-/// any of its eight neighbours: [`square_side_px`], or less on a board seen so obliquely that its
-/// squares are sheared and the short diagonal of a square is shorter than its sides.
+/// The shortest distance (pixels) between neighbouring corners of a row-major grid of `cols`
+/// corners a row, diagonal neighbours included: [`square_side_px`], or less on a board seen so
+/// obliquely that its squares are sheared and a square's short diagonal is shorter than its
+/// sides.
 pub fn corner_spacing_px(corners: &[Point2<f64>], cols: usize) -> f64 {
     let rows = corners.len() / cols;
     let mut spacing = square_side_px(corners, cols);
@@ -258,4 +259,33 @@ pub fn read_images(pattern: &str) -> Result<(Vec<BoardImage>, (u32, u32))> {
 /// Reads an image file as 8-bit grey; names the file if it cannot.
 pub fn read_grey(path: &Path) -> Result<Mat> {
     read_image(path, opencv::imgcodecs::IMREAD_GRAYSCALE)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A grid of 3 × 2 corners, each row shifted by `shear` px along it, rows 10 px apart.
+    fn sheared_grid(shear: f64) -> Vec<Point2<f64>> {
+        (0..2)
+            .flat_map(|r| {
+                (0..3)
+                    .map(move |c| Point2::new(12.0 * c as f64 + shear * r as f64, 10.0 * r as f64))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_spacing_of_a_sheared_board_is_its_short_diagonal() {
+        // Unsheared: the rows' 10 px; the diagonals are longer.
+        assert_eq!(corner_spacing_px(&sheared_grid(0.0), 3), 10.0);
+        // Sheared by 11 px: the sides are 12 and √221 ≈ 14.9 px, the short diagonal from a
+        // row's second corner to the next row's first (−1, 10): √101 ≈ 10.05 px.
+        let grid = sheared_grid(11.0);
+        assert!((square_side_px(&grid, 3) - 12.0).abs() < 1e-12);
+        assert!((corner_spacing_px(&grid, 3) - 101f64.sqrt()).abs() < 1e-12);
+        // By 18 px the short diagonal (6, 10) is √136 ≈ 11.7 px, still under the 12 px side.
+        let grid = sheared_grid(18.0);
+        assert!((corner_spacing_px(&grid, 3) - (36.0f64 + 100.0).sqrt()).abs() < 1e-12);
+    }
 }

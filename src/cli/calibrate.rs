@@ -66,7 +66,7 @@ pub struct CameraArgs {
     pub fix_k3: bool,
     /// Keep every image in the fit: without it, the images a first fit finds outliers (error
     /// above 2.5 × the median image's) are left out and the camera fitted again, when they are
-    /// at most a quarter of the boards found
+    /// at most a quarter of the boards found.
     #[arg(long = "keep-outliers")]
     pub keep_outliers: bool,
     /// Write the camera file even when the fit is outside the trusted limits (a warning then).
