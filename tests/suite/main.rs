@@ -10,6 +10,7 @@ mod calibration_files;
 mod capture;
 mod cli;
 mod decode;
+mod doc_links;
 mod embree_agreement;
 mod eval_metrics;
 mod gradients;
