@@ -297,7 +297,9 @@ fn write_scan_folder(
         std::fs::remove_dir_all(dir).with_context(|| format!("cannot clear {}", dir.display()))?;
     }
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    std::fs::copy(truth.dir.join("scan.toml"), dir.join("scan.toml"))?;
+    let toml = truth.dir.join("scan.toml");
+    std::fs::copy(&toml, dir.join("scan.toml"))
+        .with_context(|| format!("cannot copy {} into {}", toml.display(), dir.display()))?;
     let c = &truth.config.calibration;
     calib_io::write_camera(&dir.join(&c.camera), camera, camera_rms_px, None)?;
     calib_io::write_screen(&dir.join(&c.screen), monitor)?;

@@ -80,7 +80,9 @@ fn read_runs<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Vec<T>> {
     if !path.is_file() {
         return Ok(Vec::new());
     }
-    serde_json::from_str(&std::fs::read_to_string(path)?)
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read the earlier results in {}", path.display()))?;
+    serde_json::from_str(&text)
         .with_context(|| format!("{}: not this benchmark's results file", path.display()))
 }
 
@@ -89,7 +91,9 @@ fn write_runs<T: serde::Serialize>(json: &Path, runs: &[T], md: &Path, table: &s
     write_atomic(json, |w| {
         serde_json::to_writer_pretty(&mut *w, runs)?;
         Ok(())
-    })?;
-    write_atomic(md, |w| w.write_all(table.as_bytes()))?;
+    })
+    .with_context(|| format!("cannot write {}", json.display()))?;
+    write_atomic(md, |w| w.write_all(table.as_bytes()))
+        .with_context(|| format!("cannot write {}", md.display()))?;
     Ok(())
 }

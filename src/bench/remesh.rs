@@ -233,8 +233,10 @@ fn run_pymeshlab(python: &Path, cases: &[Case], work: &Path) -> Result<Vec<PmlRu
         work.join("jobs.json"),
         work.join("runs.json"),
     );
-    std::fs::write(&script, PYMESHLAB_SCRIPT)?;
-    std::fs::write(&jobs_file, serde_json::to_vec(&jobs)?)?;
+    std::fs::write(&script, PYMESHLAB_SCRIPT)
+        .with_context(|| format!("cannot write {}", script.display()))?;
+    std::fs::write(&jobs_file, serde_json::to_vec(&jobs)?)
+        .with_context(|| format!("cannot write {}", jobs_file.display()))?;
     let status = Command::new(python)
         .arg(&script)
         .arg(&jobs_file)
@@ -244,7 +246,18 @@ fn run_pymeshlab(python: &Path, cases: &[Case], work: &Path) -> Result<Vec<PmlRu
     if !status.success() {
         bail!("pymeshlab run failed ({status}); is pymeshlab installed for {}? (make bench-remesh sets up a venv with it)", python.display());
     }
-    let runs: Vec<PmlRun> = serde_json::from_slice(&std::fs::read(&runs_file)?)?;
+    let bytes = std::fs::read(&runs_file).with_context(|| {
+        format!(
+            "pymeshlab wrote no runs: cannot read {}",
+            runs_file.display()
+        )
+    })?;
+    let runs: Vec<PmlRun> = serde_json::from_slice(&bytes).with_context(|| {
+        format!(
+            "pymeshlab's runs in {} are not readable",
+            runs_file.display()
+        )
+    })?;
     if runs.len() != cases.len() {
         bail!(
             "pymeshlab reported {} runs for {} cases",

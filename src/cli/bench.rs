@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 
 use glasscan::bench::reconstruct::ScanKind;
@@ -230,7 +230,10 @@ fn run_calibrated(a: &CalibratedBenchArgs) -> Result<()> {
     let log = |s: &str| bars.bar.suspend(|| eprintln!("{s}"));
     let results = run_calibrated_bench(&o, &bars, &log)?;
     bars.bar.finish_and_clear();
-    outln!("{}", std::fs::read_to_string(a.work.join("calibrated.md"))?);
+    let table = a.work.join("calibrated.md");
+    let text = std::fs::read_to_string(&table)
+        .with_context(|| format!("cannot read the results table {}", table.display()))?;
+    outln!("{text}");
     outln!("{} objects", results.len());
     Ok(())
 }
@@ -257,7 +260,10 @@ fn run_reconstruct(a: &ReconstructBenchArgs) -> Result<()> {
     let log = |s: &str| bars.bar.suspend(|| eprintln!("{s}"));
     let results = run_bench(&o, &bars, &log)?;
     bars.bar.finish_and_clear();
-    outln!("{}", std::fs::read_to_string(a.work.join("results.md"))?);
+    let table = a.work.join("results.md");
+    let text = std::fs::read_to_string(&table)
+        .with_context(|| format!("cannot read the results table {}", table.display()))?;
+    outln!("{text}");
     outln!(
         "{} runs; plot: {}",
         results.len(),
