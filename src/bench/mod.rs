@@ -97,3 +97,26 @@ fn write_runs<T: serde::Serialize>(json: &Path, runs: &[T], md: &Path, table: &s
         .with_context(|| format!("cannot write {}", md.display()))?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_unreadable_results_file_is_named_in_the_error() {
+        let dir = tempfile::tempdir().unwrap();
+        assert!(
+            read_runs::<serde_json::Value>(&dir.path().join("none.json"))
+                .unwrap()
+                .is_empty()
+        );
+        let bad = dir.path().join("results.json");
+        std::fs::write(&bad, [0xff, 0xfe, b'[', b']']).unwrap();
+        let e = format!("{:#}", read_runs::<serde_json::Value>(&bad).unwrap_err());
+        assert!(e.starts_with("cannot read the earlier results in "), "{e}");
+        assert!(e.contains("results.json"), "{e}");
+        std::fs::write(&bad, "{\"a\": 1}").unwrap();
+        let e = format!("{:#}", read_runs::<serde_json::Value>(&bad).unwrap_err());
+        assert!(e.contains("not this benchmark's results file"), "{e}");
+    }
+}
