@@ -187,3 +187,18 @@ pub fn killed_then_rerun(args: &[&str], out: &Path, kills: usize, span: Duration
         .collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
+
+/// The lines of a Markdown text with whether each lies inside a fenced code block (the fence
+/// lines themselves left out).
+pub fn markdown_lines(text: &str) -> Vec<(&str, bool)> {
+    let mut in_block = false;
+    let mut out = Vec::new();
+    for line in text.lines() {
+        if line.trim_start().starts_with("```") {
+            in_block = !in_block;
+        } else {
+            out.push((line, in_block));
+        }
+    }
+    out
+}

@@ -5,6 +5,8 @@
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
+use crate::common::markdown_lines;
+
 const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 
 /// GitHub's anchor of a heading: lower case, punctuation and symbols dropped (`-` and `_`
@@ -26,12 +28,7 @@ fn slug(heading: &str) -> String {
 /// suffixes on repeats.
 fn anchors(markdown: &str) -> BTreeSet<String> {
     let mut found = BTreeSet::new();
-    let mut in_block = false;
-    for line in markdown.lines() {
-        if line.trim_start().starts_with("```") {
-            in_block = !in_block;
-            continue;
-        }
+    for (line, in_block) in markdown_lines(markdown) {
         let Some(text) = line.strip_prefix('#').map(|l| l.trim_start_matches('#')) else {
             continue;
         };

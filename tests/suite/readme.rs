@@ -3,18 +3,13 @@
 //! error about the data it lacks (here, in an empty folder). Commands that need no data
 //! (`patterns`, `--version`) must succeed.
 
-use crate::common::{glasscan_cmd, run};
+use crate::common::{glasscan_cmd, markdown_lines, run};
 
 /// The `glasscan …` commands in README.md's code spans and blocks.
 fn readme_commands() -> Vec<String> {
     let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
     let mut found = Vec::new();
-    let mut in_block = false;
-    for line in text.lines() {
-        if line.trim_start().starts_with("```") {
-            in_block = !in_block;
-            continue;
-        }
+    for (line, in_block) in markdown_lines(&text) {
         if in_block {
             if line.trim_start().starts_with("glasscan ") {
                 found.push(line.trim().to_string());
