@@ -111,7 +111,9 @@ impl PixelAxes {
 /// the wider side of its decoded cell and the width of the pixel's footprint on the monitor seen
 /// without the object (its direct footprint, at the decoded point's distance), both monitor
 /// pixels (the cell infinite where unknown, as for imported rays). Their ratio is how much the
-/// glass magnified the footprint, whatever the camera's resolution.
+/// glass magnified the footprint, whatever the camera's resolution. `index_evidence`: whether
+/// its derivative with respect to the refractive index counts (not where the camera's blur
+/// skews what it decodes, [`crate::loss::blur`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PixelTarget {
     pub dir: V3,
@@ -120,6 +122,7 @@ pub struct PixelTarget {
     pub bits: PixelBits,
     pub cell_px: f32,
     pub direct_px: f32,
+    pub index_evidence: bool,
 }
 
 impl PixelTarget {
@@ -837,7 +840,8 @@ fn chunk_contributions(
         let start = g.grad.len();
         match pixel_from_paths(mesh, s, view, px, (part, &b.interfaces), &mut g) {
             Ok(()) => {
-                c.count_pixel(g.loss, px.weight, g.ior);
+                let ior = if px.index_evidence { g.ior } else { 0.0 };
+                c.count_pixel(g.loss, px.weight, ior);
                 if !counting {
                     continue;
                 }

@@ -100,6 +100,7 @@ pub fn scan_targets_with<T: Send>(
                         bits: PixelBits::default(),
                         cell_px: f32::INFINITY,
                         direct_px: f32::NAN,
+                        index_evidence: true,
                     })
                     .collect()
             } else {
@@ -117,6 +118,7 @@ pub fn scan_targets_with<T: Send>(
                             bits: pixel_bits(t, dv.contrasts.as_ref().map(|c| c[i])),
                             cell_px: t.cell_u.max(t.cell_v) as f32,
                             direct_px: direct_footprint_px(scan, t),
+                            index_evidence: true,
                         })
                     })
                     .collect()

@@ -8,6 +8,7 @@
 use std::sync::Arc;
 
 use super::config::Settings;
+use crate::decode::coherence::{flat_glass_share, FLAT_FACED_SCAN_SHARE};
 use crate::loss::blur::{correct_targets, BlurKernel, CorrectionSummary};
 use crate::loss::refraction::ViewTargets;
 use crate::scan::decoded::{DecodedScan, MeasuredBlur};
@@ -33,6 +34,12 @@ pub struct Inputs {
     pub blur: Option<BlurKernel>,
     /// Where the blur comes from, with what decode measured.
     pub blur_source: CameraBlur,
+    /// Whether the blur's skew marks pixels as no evidence of the index
+    /// ([`crate::loss::blur`]): a blur is known, and the glass is not flat-faced by decode's
+    /// measure (less than [`FLAT_FACED_SCAN_SHARE`] of its inside shows the monitor barely
+    /// shifted, or not measured). Through flat faces the marks took the rays that settle the
+    /// index: the block at 1.60 estimated 1.557 with them, 1.581 without.
+    pub skew_marks: bool,
     /// What the inputs were read from ([`fingerprint`]); a run resumes only from the same.
     pub fingerprint: super::fingerprint::Fingerprint,
 }
@@ -95,6 +102,8 @@ pub fn load_inputs(
             silhouettes: Arc::new(silhouettes),
             blur: blur_source.sigma_px().and_then(BlurKernel::gaussian),
             blur_source,
+            skew_marks: blur_source.sigma_px().is_some()
+                && flat_glass_share(decoded.summaries()).is_none_or(|s| s < FLAT_FACED_SCAN_SHARE),
             fingerprint: super::fingerprint::of_scan(scan, views)?,
         },
         warnings,
@@ -135,14 +144,16 @@ impl CameraBlur {
 
 impl Inputs {
     /// These inputs with the decoded points of the targets `views` (indices into `targets`;
-    /// `None`: all) corrected for the camera's blur through the mesh `surface` holds at
-    /// refractive index `ior` ([`crate::loss::blur`]), and how far they moved; `None` without a
-    /// blur to correct for.
+    /// `None`: all) corrected for the camera's blur (when `shift`) through the mesh `surface`
+    /// holds at refractive index `ior`, and those the blur skews marked as no evidence of the
+    /// index where [`Self::skew_marks`] ([`crate::loss::blur`]), and how far they moved; `None`
+    /// without a blur known.
     pub fn deblurred(
         &self,
         surface: &dyn Surface,
         ior: f64,
         views: Option<&[usize]>,
+        shift: bool,
     ) -> Result<Option<(Inputs, CorrectionSummary)>> {
         let Some(kernel) = &self.blur else {
             return Ok(None);
@@ -152,7 +163,8 @@ impl Inputs {
             .filter(|&(t, _)| chosen(t))
             .map(|(_, view)| view)
             .collect();
-        let (corrected, summary) = correct_targets(surface, ior, kernel, &picked)?;
+        let (corrected, summary) =
+            correct_targets(surface, ior, kernel, &picked, (shift, self.skew_marks))?;
         // Each view copied once: the chosen ones corrected, in order, the others as they are.
         let mut corrected = corrected.into_iter();
         let targets = (self.targets.iter().enumerate())
@@ -171,6 +183,7 @@ impl Inputs {
             silhouettes: Arc::clone(&self.silhouettes),
             blur: self.blur.clone(),
             blur_source: self.blur_source,
+            skew_marks: self.skew_marks,
             fingerprint: self.fingerprint.clone(),
         };
         Ok(Some((inputs, summary)))

@@ -308,6 +308,7 @@ mod tests {
             silhouettes: Default::default(),
             blur: None,
             blur_source: Default::default(),
+            skew_marks: false,
             fingerprint: Default::default(),
         };
         checkpoint.stages_done = checkpoint.settings.warmup_stages;
@@ -366,6 +367,7 @@ mod tests {
                     bits,
                     cell_px: 1.0,
                     direct_px: 1.0,
+                    index_evidence: true,
                 }],
                 ..view_down_z(100.0, (500.0, 500.0))
             }],
@@ -373,6 +375,7 @@ mod tests {
             silhouettes: Default::default(),
             blur: None,
             blur_source: Default::default(),
+            skew_marks: false,
             fingerprint: Default::default(),
         };
         let measured = PixelBits {

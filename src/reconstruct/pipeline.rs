@@ -240,7 +240,8 @@ fn used_index(inputs: &Inputs, finished: &Finished, result_stage: usize) -> f64 
 
 /// The index the result was made at, `used` (`given`, or its stage's estimate), and the
 /// held-out fit of the result (mesh `result`, of `finished`) about it, with the held-out
-/// views' points corrected for the camera's blur on the result when the run corrects.
+/// views' points marked for the camera's blur on the result (and corrected when the run
+/// corrects) wherever a blur is known.
 fn index_report(
     inputs: &Inputs,
     given: Ior,
@@ -248,9 +249,9 @@ fn index_report(
 ) -> Result<IndexReport> {
     let settings = &finished.checkpoint.settings;
     let split = Split::new(inputs, settings.validation_share);
-    // The held-out views' points corrected for the camera's blur on the result.
-    let deblurred = if settings.blur_correction {
-        inputs.deblurred(result, used, Some(&split.held_targets))?
+    let held = Some(&split.held_targets[..]);
+    let deblurred = if settings.blur_correction || inputs.skew_marks {
+        inputs.deblurred(result, used, held, settings.blur_correction)?
     } else {
         None
     };

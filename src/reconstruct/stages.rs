@@ -181,8 +181,9 @@ pub(super) fn run_next_stage(
 }
 
 /// What a stage runs on: the run's inputs or, after the warm-up of a run with `blur_correction`
-/// and a blur to correct for, those inputs with the decoded points corrected on the stage's
-/// start mesh at the stage's index (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur;
+/// or an index to estimate, and a blur known, those inputs with the decoded points corrected
+/// (with `blur_correction`) and marked as evidence of the index or not on the stage's start mesh
+/// at the stage's index (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur;
 /// the warm-up's DRT steps carve the hull, whose rims are far from the object's). The stage's
 /// held-out fit compares its mesh with these points, so stages' fits compare each stage with
 /// its own correction. Made once per stage: the membrane judge's second run of the stage reuses
@@ -203,10 +204,13 @@ impl<'a> StageInputs<'a> {
     ) -> Result<Self> {
         let t0 = Instant::now();
         let (settings, s) = (&checkpoint.settings, checkpoint.stages_done);
-        let corrected = if settings.blur_correction && s >= settings.warmup_stages {
+        let marks = inputs.ior.is_auto() && inputs.skew_marks;
+        let acts = settings.blur_correction && inputs.blur.is_some() || marks;
+        let corrected = if acts && s >= settings.warmup_stages {
             let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
+            let shift = settings.blur_correction;
             inputs
-                .deblurred(&surface, checkpoint.index(inputs), None)
+                .deblurred(&surface, checkpoint.index(inputs), None, shift)
                 .with_context(|| format!("stage {s}: correcting the decoded points for the blur"))?
         } else {
             None

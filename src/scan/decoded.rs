@@ -353,6 +353,11 @@ impl DecodedScan {
         })
     }
 
+    /// What decode recorded of each view.
+    pub fn summaries(&self) -> &[ViewSummary] {
+        &self.summaries
+    }
+
     /// The warning decode recorded for view `k`, if any.
     pub fn warning(&self, k: usize) -> Option<&str> {
         self.summaries

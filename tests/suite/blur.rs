@@ -75,7 +75,8 @@ fn a_blurred_cameras_decoded_points_corrected_for_the_blur_meet_the_centre_rays(
     let kernel = BlurKernel::gaussian(1.0).unwrap();
     let surface = MeshSurface::new(&shape, NormalModel::Vertex).unwrap();
     let picked: Vec<&_> = targets.iter().collect();
-    let (corrected, summary) = correct_targets(&surface, IOR, &kernel, &picked).unwrap();
+    let (corrected, summary) =
+        correct_targets(&surface, IOR, &kernel, &picked, (true, true)).unwrap();
     let before = centre_ray_misses_mm(&shape, &targets);
     let after = centre_ray_misses_mm(&shape, &corrected);
     let (b, a) = (mean(&before), mean(&after));
@@ -88,4 +89,38 @@ fn a_blurred_cameras_decoded_points_corrected_for_the_blur_meet_the_centre_rays(
         "{summary:?}"
     );
     assert!(a < 0.7 * b, "{a} against {b}");
+
+    // Marked only: the points as decoded, the same pixels marked as no evidence of the index;
+    // those are the pixels whose decoded points the blur skews most.
+    let (marked, only) = correct_targets(&surface, IOR, &kernel, &picked, (false, true)).unwrap();
+    assert_eq!(
+        (only.corrected, only.skewed),
+        (0, summary.skewed),
+        "{only:?}"
+    );
+    for ((m, c), t) in marked.iter().zip(&corrected).zip(&targets) {
+        for ((m, c), t) in m.pixels.iter().zip(&c.pixels).zip(&t.pixels) {
+            assert_eq!((m.target, m.index_evidence), (t.target, c.index_evidence));
+        }
+    }
+    let evidence = |flag: bool| -> Vec<ViewTargets> {
+        let pick = |(t, m): (&ViewTargets, &ViewTargets)| ViewTargets {
+            pixels: (t.pixels.iter().zip(&m.pixels))
+                .filter(|(_, m)| m.index_evidence == flag)
+                .map(|(p, _)| *p)
+                .collect(),
+            ..t.clone()
+        };
+        targets.iter().zip(&marked).map(pick).collect()
+    };
+    let skewed = mean(&centre_ray_misses_mm(&shape, &evidence(false)));
+    let kept = mean(&centre_ray_misses_mm(&shape, &evidence(true)));
+    eprintln!(
+        "{} pixels marked: mean miss {skewed:.3} mm, the others {kept:.3} mm",
+        only.skewed
+    );
+    assert!(
+        only.skewed > 100 && skewed > 3.0 * kept,
+        "{only:?}: {skewed} against {kept}"
+    );
 }

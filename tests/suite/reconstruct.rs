@@ -514,7 +514,8 @@ fn refraction_carries_the_shape_beyond_the_hull() {
 /// scan.toml, no warm-up): every stage reports the points it corrected and the correction's
 /// time — the first stage too, which the membrane judge runs twice and whose second run, which
 /// stands, reuses the first run's correction and is handed its time. Still nearer the truth
-/// than the hull (`hull`, mm).
+/// than the hull (`hull`, mm). A run without the correction whose index is to be estimated
+/// traces the same neighbourhoods to mark the pixels the blur skews, and moves no point.
 fn assert_every_blur_corrected_stage_reports_its_correction(dir: &Path, scan: &Path, hull: f64) {
     let toml = scan.join("scan.toml");
     let text = std::fs::read_to_string(&toml).unwrap();
@@ -536,6 +537,22 @@ fn assert_every_blur_corrected_stage_reports_its_correction(dir: &Path, scan: &P
     }
     let accuracy = result_accuracy(&report);
     assert!(accuracy < hull, "{accuracy} against the hull's {hull}");
+
+    let plain = dir.join("plain.toml");
+    std::fs::write(&plain, PEBBLE_CONFIG).unwrap();
+    let out = dir.join("blur-auto");
+    let mut args = reconstruct_args(scan, &plain, &out);
+    args.extend(["--ior".into(), "auto".into()]);
+    let o = glasscan(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for stage in read_report(&out)["stages"].as_array().unwrap() {
+        let blur = &stage["blur"];
+        let kept = blur["kept"].as_u64().unwrap_or(0);
+        assert!(
+            kept > 0 && blur["corrected"] == 0 && blur["skewed"].is_u64(),
+            "{stage}"
+        );
+    }
 }
 
 /// The pebble's short schedule at edges fine enough for the prism's 6 mm chamfers, with its
