@@ -181,9 +181,9 @@ pub(super) fn run_next_stage(
 }
 
 /// What a stage runs on: the run's inputs or, after the warm-up of a run with `blur_correction`
-/// or an index to estimate, and a blur known, those inputs with the decoded points corrected
-/// (with `blur_correction`) and marked as evidence of the index or not on the stage's start mesh
-/// at the stage's index (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur;
+/// and a blur known, or with an index to estimate and [`Inputs::skew_marks`], those inputs with
+/// the decoded points corrected (with `blur_correction`) and marked as evidence of the index or
+/// not (with the marks) on the stage's start mesh at the stage's index (docs/decisions.md#decoded-points-corrected-for-the-cameras-blur;
 /// the warm-up's DRT steps carve the hull, whose rims are far from the object's). The stage's
 /// held-out fit compares its mesh with these points, so stages' fits compare each stage with
 /// its own correction. Made once per stage: the membrane judge's second run of the stage reuses
@@ -205,7 +205,7 @@ impl<'a> StageInputs<'a> {
         let t0 = Instant::now();
         let (settings, s) = (&checkpoint.settings, checkpoint.stages_done);
         let marks = inputs.ior.is_auto() && inputs.skew_marks;
-        let acts = settings.blur_correction && inputs.blur.is_some() || marks;
+        let acts = (settings.blur_correction && inputs.blur.is_some()) || marks;
         let corrected = if acts && s >= settings.warmup_stages {
             let surface = MeshSurface::with_mode(mesh, settings.normals, BuildMode::Static)?;
             let shift = settings.blur_correction;
