@@ -172,19 +172,20 @@ fn correct_view(
         })
         .collect::<Result<_, TraceError>>()?;
     let mut out = view.clone();
-    let mut marked = vec![false; out.pixels.len()];
+    if mark {
+        // No evidence until a shift within SKEW_MM says otherwise.
+        out.pixels.iter_mut().for_each(|p| p.index_evidence = false);
+    }
     let mut sizes = Vec::new();
     for (i, by) in moved.into_iter().flatten() {
+        let (p, size) = (&mut out.pixels[i], by.norm());
         if shift {
-            out.pixels[i].target -= by;
+            p.target -= by;
         }
-        marked[i] = by.norm() <= SKEW_MM;
-        sizes.push(by.norm());
-    }
-    if mark {
-        for (p, evidence) in out.pixels.iter_mut().zip(marked) {
-            p.index_evidence = evidence;
+        if mark {
+            p.index_evidence = size <= SKEW_MM;
         }
+        sizes.push(size);
     }
     Ok((out, sizes))
 }
