@@ -1087,13 +1087,13 @@ fn evaluate_views(
     (loss, used, drops, gnorm)
 }
 
-/// The refraction term of `views` on `surface`'s mesh at index `ior`: loss, rays used and
-/// ∂L/∂index.
+/// The refraction term of `views` on `surface`'s mesh at index `ior`: loss, rays used,
+/// ∂L/∂index and the gradient per vertex.
 fn term_and_index_slope(
     surface: &MeshSurface,
     views: &[ViewTargets],
     ior: f64,
-) -> (f64, usize, f64) {
+) -> (f64, usize, f64, Vec<V3>) {
     let s = RefractionSettings {
         max_refractions: 4,
         ..settings(
@@ -1108,7 +1108,8 @@ fn term_and_index_slope(
     for v in views {
         add_view(surface, surface.mesh(), Some(&vn), &s, v, &mut acc).unwrap();
     }
-    (acc.loss, acc.used, acc.ior)
+    let (loss, used, ior) = (acc.loss, acc.used, acc.ior);
+    (loss, used, ior, acc.finish(surface.mesh()))
 }
 
 #[test]
@@ -1128,13 +1129,15 @@ fn pixels_that_are_no_evidence_of_the_index_pull_the_shape_but_not_the_index() {
         }
         marked
     };
-    let (loss, used, slope) = term_and_index_slope(&surface, &views, 1.52);
+    let (loss, used, slope, grad) = term_and_index_slope(&surface, &views, 1.52);
     assert!(used > 2000 && slope > 0.0, "{used} rays, ∂L/∂index {slope}");
-    let (loss_none, used_none, slope_none) =
+    assert!(grad.iter().any(|g| g.norm() > 0.0));
+    let (loss_none, used_none, slope_none, grad_none) =
         term_and_index_slope(&surface, &mark(&|_| false), 1.52);
     assert_eq!((loss_none, used_none, slope_none), (loss, used, 0.0));
-    let (_, _, even) = term_and_index_slope(&surface, &mark(&|i| i % 2 == 0), 1.52);
-    let (_, _, odd) = term_and_index_slope(&surface, &mark(&|i| i % 2 == 1), 1.52);
+    assert_eq!(grad_none, grad, "the pull on the shape changed");
+    let (_, _, even, _) = term_and_index_slope(&surface, &mark(&|i| i % 2 == 0), 1.52);
+    let (_, _, odd, _) = term_and_index_slope(&surface, &mark(&|i| i % 2 == 1), 1.52);
     assert!(even > 0.0 && odd > 0.0, "{even} {odd}");
     assert!(
         (even + odd - slope).abs() <= 1e-9 * slope,
