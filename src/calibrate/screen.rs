@@ -12,7 +12,10 @@
 //!    pose at (u′, v′); the residual against the cell centre (u, v), divided by the cell's standard
 //!    deviation (width/√12, plus a floor for the decoder's own noise), is minimised by
 //!    Gauss–Newton over the 6 degrees of freedom of the pose with Huber weights, on an irregular
-//!    sample of the pixels (a regular grid would alias with the monitor's pixel grid).
+//!    sample of the pixels (a regular grid would alias with the monitor's pixel grid). Beside the
+//!    cells, the sub-pixel stripe edges ([`crate::decode::edges`]): each is a camera point whose
+//!    ray meets a known monitor column (or row) boundary, its residual in u (or v) divided by
+//!    [`EDGE_SIGMA_CAMERA_PX`] seen on the monitor, with the same floor.
 //! 3. The residuals are reported in monitor pixels; a pose whose residuals exceed the cells
 //!    (median normalised residual above 1) is flagged.
 
@@ -24,10 +27,12 @@ use opencv::core::{Mat, MatTraitConst, Point2d, Point3d, Vector};
 use rayon::prelude::*;
 
 use super::{camera_mats, pose_from_vectors};
+use crate::decode::edges::StripeEdge;
 use crate::decode::{decode_captures, DecodeOptions, DecodedCapture, Keep};
 use crate::patterns::GrayCode;
 use crate::rig::{Camera, Screen};
 use crate::scan::{background_dir, ScanConfig};
+use crate::util::hash_share;
 
 /// Correspondences RANSAC draws from (a grid over the most precise pixels).
 pub const TARGET_POINTS: usize = 4000;
@@ -39,6 +44,10 @@ pub const MIN_DECODED_SHARE: f64 = 0.05;
 pub const MAX_CELL_PX: u32 = 64;
 /// Standard deviation of a fully decoded pixel's position besides its cell, monitor pixels.
 const NOISE_FLOOR_PX: f64 = 0.3;
+/// Standard deviation of a stripe edge's position in the image, camera pixels: the zero crossing
+/// between two pixels that each average the stripes over their area lands within 0.09 px of the
+/// boundary's image (`decode::edges`' test); the rest is the captures' noise.
+pub const EDGE_SIGMA_CAMERA_PX: f64 = 0.1;
 
 /// A monitor pose and how well it fits.
 #[derive(Clone, Debug)]
@@ -59,8 +68,44 @@ pub struct ScreenCalibration {
     /// Correspondences, and those the pose was fitted on.
     pub points: usize,
     pub fitted: usize,
+    /// Stripe edges the pose was fitted on, and the median of their residuals across their
+    /// boundaries, monitor pixels (NaN without edges).
+    pub edges: usize,
+    pub edge_median_residual_px: f64,
     /// Set when the residuals exceed the cells: the pose does not explain the decodes.
     pub warning: Option<String>,
+}
+
+/// A stripe edge as the fit uses it: a ray (camera frame, unit) that meets the monitor on the
+/// column boundary u = `coord` (or the row boundary v = `coord`), within `sigma` monitor pixels.
+#[derive(Clone, Copy, Debug)]
+struct EdgeLine {
+    ray: Vector3<f64>,
+    column: bool,
+    coord: f64,
+    sigma: f64,
+}
+
+/// What the pose is fitted to: a pixel's cell, or a stripe edge.
+#[derive(Clone, Copy, Debug)]
+enum Constraint {
+    Cell(Correspondence),
+    Edge(EdgeLine),
+}
+
+impl Constraint {
+    /// The normalised residuals at `pose` (an edge's second is 0), or `None` where the ray
+    /// misses the plane.
+    fn residual(&self, pose: &Isometry3<f64>, pitch_mm: f64) -> Option<[f64; 2]> {
+        match self {
+            Constraint::Cell(c) => normalised_residual(c, pose, pitch_mm),
+            Constraint::Edge(e) => {
+                let (u, v) = monitor_hit(&e.ray, pose, pitch_mm)?;
+                let at = if e.column { u } else { v };
+                Some([(at - e.coord) / e.sigma, 0.0])
+            }
+        }
+    }
 }
 
 /// One correspondence: a camera pixel's ray (camera frame, unit) and the monitor cell it sees.
@@ -105,7 +150,10 @@ pub fn from_background(
         config.patterns.phase_shift.as_ref(),
         (camera.width, camera.height),
         &DecodeOptions::default(),
-        Keep::default(),
+        Keep {
+            edges: true,
+            ..Keep::default()
+        },
     )?;
     calibrate_screen(&cap, &code, camera, pitch_mm)
 }
@@ -138,16 +186,23 @@ pub fn calibrate_screen(
         );
     }
     let guess = ransac_pose(&all, camera, pitch_mm)?;
-    let sample = irregular_sample(&all, REFINE_POINTS);
-    let pose = fit_pose(&sample, guess, pitch_mm);
+    let sample = irregular_sample(&all, REFINE_POINTS, |c| pixel_key(c.pixel));
+    let scale = monitor_px_per_camera_px(&all.iter().collect::<Vec<_>>());
+    let edges = edge_lines(cap.edges.as_deref().unwrap_or(&[]), camera, scale);
+    let edges = irregular_sample(&edges, REFINE_POINTS, |e| e.0);
+    let constraints: Vec<Constraint> = (sample.iter().map(|&c| Constraint::Cell(c)))
+        .chain(edges.iter().map(|&(_, e)| Constraint::Edge(e)))
+        .collect();
+    let pose = fit_pose(&constraints, guess, pitch_mm);
     if (pose.rotation * Vector3::z()).dot(&(pose * Point3::origin()).coords) <= 0.0 {
         bail!("the solved monitor faces away from the camera: the decoded rows or columns are mirrored (check the patterns' order)");
     }
     let complete = (0..cap.pixels.len())
         .filter(|&i| cap.lit[i] && cap.pixels[i].complete(code))
         .count();
+    let edges: Vec<EdgeLine> = edges.into_iter().map(|(_, e)| e).collect();
     Ok(summarise(
-        &sample,
+        (&sample, &edges),
         pose,
         code,
         pitch_mm,
@@ -250,24 +305,46 @@ fn monitor_px_per_camera_px(cs: &[&Correspondence]) -> f64 {
     (pu.x * pv.y - pu.y * pv.x).abs().sqrt()
 }
 
-/// About `n` correspondences drawn by a hash of their pixel (irregular, deterministic).
-fn irregular_sample(all: &[Correspondence], n: usize) -> Vec<Correspondence> {
+/// About `n` of `all` drawn by a hash of each one's `key` (irregular, deterministic).
+fn irregular_sample<T: Copy>(all: &[T], n: usize, key: impl Fn(&T) -> u64) -> Vec<T> {
     let keep = (n as f64 / all.len() as f64).min(1.0);
     all.iter()
-        .filter(|c| {
-            let i = (c.pixel.1 as u64) << 32 | c.pixel.0 as u64;
-            (i.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11) as f64 / (1u64 << 53) as f64 <= keep
-        })
+        .filter(|c| hash_share(key(c)) <= keep)
         .copied()
         .collect()
 }
 
-/// Where `c`'s ray meets the monitor plane of `pose`, monitor pixels; `None` if it runs parallel
-/// to it or meets it behind the camera.
-fn monitor_hit(c: &Correspondence, pose: &Isometry3<f64>, pitch_mm: f64) -> Option<(f64, f64)> {
+/// A key of a position in the image (camera pixels, to a 1/1024 of a pixel) for
+/// [`irregular_sample`].
+fn pixel_key((x, y): (f64, f64)) -> u64 {
+    let q = |a: f64| (a * 1024.0).round() as u64 & 0xFFFF_FFFF;
+    q(y) << 32 | q(x)
+}
+
+/// The stripe edges as the fit uses them, each with its key for [`irregular_sample`] (its
+/// position and axis); `scale`: monitor pixels per camera pixel.
+fn edge_lines(edges: &[StripeEdge], camera: &Camera, scale: f64) -> Vec<(u64, EdgeLine)> {
+    let sigma = (EDGE_SIGMA_CAMERA_PX * scale).hypot(NOISE_FLOOR_PX);
+    edges
+        .iter()
+        .filter_map(|e| {
+            let line = EdgeLine {
+                ray: camera.pixel_ray(e.pixel.0, e.pixel.1)?,
+                column: e.column,
+                coord: e.coord,
+                sigma,
+            };
+            Some((pixel_key(e.pixel) ^ u64::from(e.column) << 63, line))
+        })
+        .collect()
+}
+
+/// Where `ray` (camera frame) meets the monitor plane of `pose`, monitor pixels; `None` if it
+/// runs parallel to it or meets it behind the camera.
+fn monitor_hit(ray: &Vector3<f64>, pose: &Isometry3<f64>, pitch_mm: f64) -> Option<(f64, f64)> {
     let inv = pose.inverse();
     let o = inv * Point3::origin();
-    let d = inv.rotation * c.ray;
+    let d = inv.rotation * ray;
     let t = -o.z / d.z;
     if !(t > 0.0 && t.is_finite()) {
         return None;
@@ -282,7 +359,7 @@ fn normalised_residual(
     pose: &Isometry3<f64>,
     pitch_mm: f64,
 ) -> Option<[f64; 2]> {
-    let (u, v) = monitor_hit(c, pose, pitch_mm)?;
+    let (u, v) = monitor_hit(&c.ray, pose, pitch_mm)?;
     let (su, sv) = c.sigma();
     Some([(u - c.u) / su, (v - c.v) / sv])
 }
@@ -298,20 +375,20 @@ fn moved(pose: &Isometry3<f64>, x: &Vector6<f64>) -> Isometry3<f64> {
 
 /// Step 2: Gauss–Newton on the normalised residuals with Huber weights (k = 2), Jacobians by
 /// central differences.
-fn fit_pose(cs: &[Correspondence], mut pose: Isometry3<f64>, pitch_mm: f64) -> Isometry3<f64> {
+fn fit_pose(cs: &[Constraint], mut pose: Isometry3<f64>, pitch_mm: f64) -> Isometry3<f64> {
     let scale = (pose.translation.vector.norm()).max(1.0);
     let steps = Vector6::new(1e-6, 1e-6, 1e-6, 1e-6 * scale, 1e-6 * scale, 1e-6 * scale);
     for _ in 0..30 {
         let (jtj, jtr) = cs
             .par_iter()
             .filter_map(|c| {
-                let r = normalised_residual(c, &pose, pitch_mm)?;
+                let r = c.residual(&pose, pitch_mm)?;
                 let mut j = [[0.0; 6]; 2];
                 for k in 0..6 {
                     let mut e = Vector6::zeros();
                     e[k] = steps[k];
-                    let p = normalised_residual(c, &moved(&pose, &e), pitch_mm)?;
-                    let m = normalised_residual(c, &moved(&pose, &-e), pitch_mm)?;
+                    let p = c.residual(&moved(&pose, &e), pitch_mm)?;
+                    let m = c.residual(&moved(&pose, &-e), pitch_mm)?;
                     for a in 0..2 {
                         j[a][k] = (p[a] - m[a]) / (2.0 * steps[k]);
                     }
@@ -343,7 +420,7 @@ fn fit_pose(cs: &[Correspondence], mut pose: Isometry3<f64>, pitch_mm: f64) -> I
 
 /// Step 3: the residuals of the fitted pose, in monitor pixels and normalised, and the flag.
 fn summarise(
-    cs: &[Correspondence],
+    (cs, edges): (&[Correspondence], &[EdgeLine]),
     pose: Isometry3<f64>,
     code: &GrayCode,
     pitch_mm: f64,
@@ -355,7 +432,7 @@ fn summarise(
     let mut norm = Vec::with_capacity(cs.len());
     for c in cs {
         if let (Some((u, v)), Some(r)) = (
-            monitor_hit(c, &pose, pitch_mm),
+            monitor_hit(&c.ray, &pose, pitch_mm),
             normalised_residual(c, &pose, pitch_mm),
         ) {
             px.push((u - c.u).hypot(v - c.v));
@@ -368,6 +445,10 @@ fn summarise(
             .copied()
             .unwrap_or(f64::NAN)
     };
+    let mut edge_px: Vec<f64> = edges
+        .iter()
+        .filter_map(|e| Some(Constraint::Edge(*e).residual(&pose, pitch_mm)?[0].abs() * e.sigma))
+        .collect();
     let rms_normalised =
         (norm.iter().map(|x| x * x).sum::<f64>() / norm.len().max(1) as f64).sqrt();
     let median_normalised = quantile(&mut norm, 0.5);
@@ -392,6 +473,8 @@ fn summarise(
         complete_share,
         points,
         fitted: cs.len(),
+        edges: edges.len(),
+        edge_median_residual_px: quantile(&mut edge_px, 0.5),
         warning,
     }
 }

@@ -220,18 +220,20 @@ fn screen(a: &ScreenArgs) -> Result<()> {
     let t = cal.screen.pose.translation.vector;
     let n = cal.screen.pose.rotation * nalgebra::Vector3::z();
     outln!(
-        "monitor decoded in {:.1} % of the image ({:.1} % to every bit; median cell {:.0} monitor px); pose fitted on {} of its {} pixels",
+        "monitor decoded in {:.1} % of the image ({:.1} % to every bit; median cell {:.0} monitor px); pose fitted on {} of its {} pixels and {} stripe edges",
         100.0 * cal.decoded_share,
         100.0 * cal.complete_share,
         cal.median_cell_px,
         cal.fitted,
-        cal.points
+        cal.points,
+        cal.edges
     );
     outln!(
-        "residuals: median {:.3}, 95 % {:.3} monitor px; RMS {:.2} cell standard deviations",
+        "residuals: median {:.3}, 95 % {:.3} monitor px; RMS {:.2} cell standard deviations; across the stripe edges median {:.3} monitor px",
         cal.median_residual_px,
         cal.p95_residual_px,
-        cal.rms_normalised
+        cal.rms_normalised,
+        cal.edge_median_residual_px
     );
     if let Some(w) = &cal.warning {
         eprintln!("warning: {w}");

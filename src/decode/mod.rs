@@ -6,6 +6,7 @@ pub mod blur;
 mod carry;
 pub mod coherence;
 pub mod compare;
+pub mod edges;
 pub mod graycode;
 pub mod mask;
 pub mod phase;
@@ -27,6 +28,7 @@ use coherence::{
     background_share, fine_bits, flat_glass_pixels, flat_glass_share, interior_object_pixels,
     shares_beside_flat_glass, FineDiffs, FLAT_FACED_SCAN_SHARE,
 };
+use edges::StripeEdge;
 use graycode::{bit_contrasts, decode_view, BitTest, PixelDecode};
 use mask::{
     clean, dim_points, outline_coverage, pixels_at_monitor_edge, raw_mask, BackgroundPixel,
@@ -86,7 +88,13 @@ pub struct DecodedCapture {
     /// The camera's blur measured on the stripes, or why it could not be; `None` when not
     /// asked for.
     pub blur: Option<Result<form::MeasuredBlur, blur::Unmeasured>>,
+    /// The sub-pixel stripe edges ([`edges`]), when asked for.
+    pub edges: Option<Vec<StripeEdge>>,
 }
+
+/// The most stripe edges [`decode_captures`] keeps ([`edges::stripe_edges`]), about 32 MB: every
+/// edge of a 640×480 camera, those of a tenth of the pixel pairs of a 5 MP one.
+pub const MOST_EDGES: usize = 1_000_000;
 
 /// What [`decode_captures`] keeps beyond the decoded pixels.
 #[derive(Clone, Copy, Debug, Default)]
@@ -95,6 +103,8 @@ pub struct Keep {
     pub fine: bool,
     /// The camera's blur, measured on the stripes ([`blur`]; captures of the monitor alone).
     pub blur: bool,
+    /// The sub-pixel stripe edges ([`edges`]; captures of the monitor alone).
+    pub edges: bool,
 }
 
 /// The bit contrasts of the object pixels with a decoded monitor point, encoded for
@@ -167,6 +177,13 @@ fn to_8bit(m: Mat, bits: u32) -> Result<Mat> {
     Ok(if m.is_continuous() { m } else { m.try_clone()? })
 }
 
+/// Whether each pixel is lit: white − black above `black_threshold` grey levels.
+fn lit_pixels(white: &[u8], black: &[u8], black_threshold: u8) -> Vec<bool> {
+    (white.iter().zip(black))
+        .map(|(&w, &b)| w as i32 - b as i32 > black_threshold as i32)
+        .collect()
+}
+
 /// Reads and decodes the captures in `dir` (with the phase-shift images if `phase` is given),
 /// keeping what `keep` asks for; names the missing or misfit image.
 pub fn decode_captures(
@@ -206,6 +223,18 @@ pub fn decode_captures(
         min_contrast: o.min_contrast,
     };
     let mut pixels = decode_view(&data[..n], white, black, code, test);
+    let lit = lit_pixels(white, black, o.black_threshold);
+    let edges = keep.edges.then(|| {
+        let capture = edges::Capture {
+            images: &data[..n],
+            white,
+            black,
+            pixels: &pixels,
+            lit: &lit,
+            width: size.0 as usize,
+        };
+        edges::stripe_edges(&capture, code, test, MOST_EDGES)
+    });
     let fine = keep
         .fine
         .then(|| FineDiffs::new(&data[..n], white, black, &fine_bits(code), test));
@@ -213,11 +242,6 @@ pub fn decode_captures(
         phase::refine(&mut pixels, &data[n + 2..], p, o.min_modulation);
     }
     let contrasts = bit_contrasts(&data[..n], white, black, code, &pixels);
-    let lit: Vec<bool> = white
-        .iter()
-        .zip(black)
-        .map(|(&w, &b)| w as i32 - b as i32 > o.black_threshold as i32)
-        .collect();
     let blur = keep.blur.then(|| {
         let view = blur::DirectView {
             images: &data[..n],
@@ -239,6 +263,7 @@ pub fn decode_captures(
         fine,
         contrasts,
         blur,
+        edges,
     })
 }
 
@@ -282,7 +307,7 @@ pub fn decode_scan(
     for &k in views {
         let keep = Keep {
             fine: background_capture.is_some(),
-            blur: false,
+            ..Keep::default()
         };
         let cap = decode_captures(&scan.view_dir(k), &code, phase, size, o, keep)?;
         let summary = match view_problem(&cap) {
@@ -407,6 +432,7 @@ fn background_reference(
         let keep = Keep {
             fine: true,
             blur: true,
+            ..Keep::default()
         };
         let cap = decode_captures(&dir, code, phase, size, o, keep)?;
         let pixels = cap

@@ -91,6 +91,12 @@ pub fn scatter_seed(seed: u64) -> u64 {
     seed.wrapping_mul(0x9e37_79b9_7f4a_7c15)
 }
 
+/// A key's place in [0, 1), scattered by a multiplicative hash: a deterministic draw that keeps
+/// a share of items (those below the share) without a random stream.
+pub fn hash_share(key: u64) -> f64 {
+    (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11) as f64 / (1u64 << 53) as f64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

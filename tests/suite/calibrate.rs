@@ -10,7 +10,7 @@ use glasscan::calibrate::board::{read_images, Board};
 use glasscan::calibrate::camera::{calibrate_camera, CameraOptions};
 use glasscan::calibrate::screen::calibrate_screen;
 use glasscan::calibrate::turntable::calibrate_turntable;
-use glasscan::decode::{decode_captures, DecodeOptions, Keep};
+use glasscan::decode::{decode_captures, DecodeOptions, DecodedCapture, Keep};
 use glasscan::mesh::shapes::icosphere;
 use glasscan::scan::Scan;
 use glasscan::simulate::calibration::{CalibrationBoards, TURNTABLE_ANGLES};
@@ -267,10 +267,14 @@ fn simulated_monitor_pose_matches_its_truth() {
         None,
         (truth.camera.width, truth.camera.height),
         &DecodeOptions::default(),
-        Keep::default(),
+        Keep {
+            edges: true,
+            ..Keep::default()
+        },
     )
     .unwrap();
     let cal = calibrate_screen(&cap, &code, &truth.camera, truth.screen.pitch_mm).unwrap();
+    assert!(cal.edges > 10_000, "{cal:?}");
     let (p, q) = (cal.screen.pose, truth.screen.pose);
     // Every monitor corner within 0.2 mm, the orientation within 0.02°.
     for (u, v) in [(0.0, 0.0), (1919.0, 0.0), (0.0, 1079.0), (1919.0, 1079.0)] {
@@ -307,7 +311,8 @@ fn monitor_errors(
 
 /// A rig whose camera does not resolve single monitor pixels (a camera pixel covers at least 4 ×
 /// 4 monitor pixels directly, as on DRT's rig at 640×480): the fine Gray bits never decode, and
-/// the pose comes from the partial decodes' cells.
+/// the pose comes from the partial decodes' cells and the stripe edges between them, which
+/// halve the error of the cells alone.
 #[test]
 fn monitor_pose_from_partial_decodes_at_large_footprints() {
     let dir = tempfile::tempdir().unwrap();
@@ -329,27 +334,44 @@ fn monitor_pose_from_partial_decodes_at_large_footprints() {
     let truth = Scan::open(dir.path()).unwrap();
     let code = truth.graycode();
     let size = (truth.camera.width, truth.camera.height);
+    let keep = Keep {
+        edges: true,
+        ..Keep::default()
+    };
     let cap = decode_captures(
         &truth.background_dir(),
         &code,
         None,
         size,
         &DecodeOptions::default(),
-        Keep::default(),
+        keep,
     )
     .unwrap();
-    let cal = calibrate_screen(&cap, &code, &truth.camera, truth.screen.pitch_mm).unwrap();
+    let pitch = truth.screen.pitch_mm;
+    let cal = calibrate_screen(&cap, &code, &truth.camera, pitch).unwrap();
     let (corner, angle) = monitor_errors(&truth, &cal);
+    let cells_only = DecodedCapture { edges: None, ..cap };
+    let cells = calibrate_screen(&cells_only, &code, &truth.camera, pitch).unwrap();
+    let (cell_corner, cell_angle) = monitor_errors(&truth, &cells);
     eprintln!(
-        "footprint {:.1} px², complete decodes {:.2} %, median cell {} px: corners within {corner:.3} mm, normal {angle:.4}°",
+        "footprint {:.1} px², complete decodes {:.2} %, median cell {} px, {} edges \
+         (median residual {:.3} px): corners within {corner:.3} mm, normal {angle:.4}°; \
+         from the cells alone {cell_corner:.3} mm, {cell_angle:.4}°",
         report.direct_footprint_px,
         100.0 * cal.complete_share,
-        cal.median_cell_px
+        cal.median_cell_px,
+        cal.edges,
+        cal.edge_median_residual_px
     );
     assert!(cal.complete_share < 0.01, "{cal:?}");
+    assert!(cal.edges > 10_000 && cells.edges == 0, "{cal:?}");
     assert!(
-        corner < 0.3 && angle < 0.05,
+        corner < 0.1 && angle < 0.02,
         "corner {corner} mm, normal {angle}°"
+    );
+    assert!(
+        corner < 0.7 * cell_corner && angle < 0.7 * cell_angle,
+        "with the edges {corner} mm, {angle}°; without {cell_corner} mm, {cell_angle}°"
     );
     assert!(cal.warning.is_none(), "{cal:?}");
 }
