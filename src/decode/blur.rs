@@ -18,7 +18,7 @@
 //! the profile; captures whose pattern and inverse do not add up to white and black between the
 //! stripes are named instead ([`Unmeasured::Nonlinear`]).
 
-use super::graycode::PixelDecode;
+use super::DirectView;
 use crate::patterns::GrayCode;
 use crate::scan::decoded::MeasuredBlur;
 use crate::util::mean;
@@ -36,18 +36,6 @@ const TRIM: f64 = 0.1;
 /// Bins of the edges' cos θ over [`MIN_COS`], 1 in the fit (the model changes by about 0.2 %
 /// across one).
 const COS_BINS: usize = 30;
-
-/// A decoded capture of the monitor seen directly: its pattern images (OpenCV's order), white
-/// and black images, decoded pixels and lit flags, row-major, `width` × `height`.
-pub struct DirectView<'a> {
-    pub images: &'a [&'a [u8]],
-    pub white: &'a [u8],
-    pub black: &'a [u8],
-    pub pixels: &'a [PixelDecode],
-    pub lit: &'a [bool],
-    pub width: usize,
-    pub height: usize,
-}
 
 /// Why the blur was not measured.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -376,7 +364,7 @@ fn mean_abs_difference(sigma: f64, cos: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::decode::graycode::AxisDecode;
+    use crate::decode::graycode::{AxisDecode, PixelDecode};
     use rayon::prelude::*;
 
     #[test]

@@ -12,7 +12,8 @@
 
 use rayon::prelude::*;
 
-use super::graycode::{BitTest, PixelDecode};
+use super::graycode::BitTest;
+use super::DirectView;
 use crate::patterns::GrayCode;
 use crate::util::hash_share;
 
@@ -28,26 +29,19 @@ pub struct StripeEdge {
     pub coord: f64,
 }
 
-/// The images a decode reads, and its decoded pixels.
-pub struct Capture<'a> {
-    /// The pattern images in OpenCV's order (pattern, inverse, per bit; columns then rows).
-    pub images: &'a [&'a [u8]],
-    pub white: &'a [u8],
-    pub black: &'a [u8],
-    /// Each pixel's Gray decode (before any phase refinement), row by row.
-    pub pixels: &'a [PixelDecode],
-    pub lit: &'a [bool],
-    pub width: usize,
-}
-
 /// The stripe edges between horizontally or vertically neighbouring lit pixels, in pixel
 /// order: a bit counts where its difference swings across the pair by at least twice the
 /// contrast a reliable bit needs there (`test`). At most about `most` of them: beyond `most` / 2
 /// lit pixels (each pair of pixels gives at most one edge per axis, about two per pixel) a
 /// deterministic share of the pairs is looked at, so that a fine camera's edges do not outweigh
 /// its images in memory.
-pub fn stripe_edges(c: &Capture, code: &GrayCode, test: BitTest, most: usize) -> Vec<StripeEdge> {
-    let height = c.pixels.len() / c.width.max(1);
+pub fn stripe_edges(
+    c: &DirectView,
+    code: &GrayCode,
+    test: BitTest,
+    most: usize,
+) -> Vec<StripeEdge> {
+    let height = c.height;
     let lit = c.lit.iter().filter(|&&l| l).count();
     let share = (most as f64 / (2.0 * lit.max(1) as f64)).min(1.0);
     (0..height)
@@ -74,7 +68,7 @@ pub fn stripe_edges(c: &Capture, code: &GrayCode, test: BitTest, most: usize) ->
 
 /// The edge of one axis between pixels `a` and `b`, if their difference crosses one there.
 fn edge(
-    c: &Capture,
+    c: &DirectView,
     code: &GrayCode,
     test: BitTest,
     (a, b): (usize, usize),
@@ -177,14 +171,12 @@ mod tests {
         };
         let pixels = decode_view(&refs, &white, &black, &code, test);
         let lit = vec![true; w * h];
-        let capture = Capture {
-            images: &refs,
-            white: &white,
-            black: &black,
-            pixels: &pixels,
-            lit: &lit,
-            width: w,
-        };
+        let data: Vec<&[u8]> = refs
+            .iter()
+            .copied()
+            .chain([&white[..], &black[..]])
+            .collect();
+        let capture = DirectView::new(&data, refs.len(), (&pixels, &lit), (w as u32, h as u32));
         let edges = stripe_edges(&capture, &code, test, usize::MAX);
         let columns: Vec<_> = edges.iter().filter(|e| e.column).collect();
         // The boundaries of the stripes the camera resolves: about one per 16 monitor pixels.

@@ -92,6 +92,39 @@ pub struct DecodedCapture {
     pub edges: Option<Vec<StripeEdge>>,
 }
 
+/// A decoded capture of the monitor seen directly: its pattern images (OpenCV's order), white
+/// and black images, decoded pixels and lit flags, row-major, `width` × `height`.
+pub struct DirectView<'a> {
+    pub images: &'a [&'a [u8]],
+    pub white: &'a [u8],
+    pub black: &'a [u8],
+    pub pixels: &'a [PixelDecode],
+    pub lit: &'a [bool],
+    pub width: usize,
+    pub height: usize,
+}
+
+impl<'a> DirectView<'a> {
+    /// From a capture's `n` pattern images followed by its white and black ones, its decoded
+    /// `pixels` and `lit` flags, `size` = (width, height).
+    fn new(
+        data: &'a [&'a [u8]],
+        n: usize,
+        (pixels, lit): (&'a [PixelDecode], &'a [bool]),
+        size: (u32, u32),
+    ) -> Self {
+        Self {
+            images: &data[..n],
+            white: data[n],
+            black: data[n + 1],
+            pixels,
+            lit,
+            width: size.0 as usize,
+            height: size.1 as usize,
+        }
+    }
+}
+
 /// The most stripe edges [`decode_captures`] keeps ([`edges::stripe_edges`]), about 32 MB: every
 /// edge of a 640×480 camera, those of a tenth of the pixel pairs of a 5 MP one.
 pub const MOST_EDGES: usize = 1_000_000;
@@ -225,15 +258,8 @@ pub fn decode_captures(
     let mut pixels = decode_view(&data[..n], white, black, code, test);
     let lit = lit_pixels(white, black, o.black_threshold);
     let edges = keep.edges.then(|| {
-        let capture = edges::Capture {
-            images: &data[..n],
-            white,
-            black,
-            pixels: &pixels,
-            lit: &lit,
-            width: size.0 as usize,
-        };
-        edges::stripe_edges(&capture, code, test, MOST_EDGES)
+        let view = DirectView::new(&data, n, (&pixels, &lit), size);
+        edges::stripe_edges(&view, code, test, MOST_EDGES)
     });
     let fine = keep
         .fine
@@ -242,18 +268,9 @@ pub fn decode_captures(
         phase::refine(&mut pixels, &data[n + 2..], p, o.min_modulation);
     }
     let contrasts = bit_contrasts(&data[..n], white, black, code, &pixels);
-    let blur = keep.blur.then(|| {
-        let view = blur::DirectView {
-            images: &data[..n],
-            white,
-            black,
-            pixels: &pixels,
-            lit: &lit,
-            width: size.0 as usize,
-            height: size.1 as usize,
-        };
-        blur::estimate(&view, code)
-    });
+    let blur = keep
+        .blur
+        .then(|| blur::estimate(&DirectView::new(&data, n, (&pixels, &lit), size), code));
     Ok(DecodedCapture {
         width: size.0 as usize,
         height: size.1 as usize,
