@@ -2,7 +2,7 @@
 //! change from one monitor cell to the next.
 //!
 //! A pixel's decoded cell says only that the monitor point it sees lies somewhere in the cell,
-//! which on a rig whose camera pixel covers many monitor pixels is a block of 16–64 of them.
+//! which on a rig whose camera pixel covers many monitor pixels is a block of 8–64 of them.
 //! The boundaries between cells are known exactly on the monitor, and the camera sees each one
 //! where a bit's pattern − inverse difference Δ changes sign: between two neighbouring pixels A
 //! and B that agree on every coarser bit, at the fraction Δ_A / (Δ_A − Δ_B) of the way from A to
