@@ -228,12 +228,19 @@ fn screen(a: &ScreenArgs) -> Result<()> {
         cal.points,
         cal.edges
     );
+    let edges = if cal.edges > 0 {
+        format!(
+            "; across the stripe edges median {:.3} monitor px",
+            cal.edge_median_residual_px
+        )
+    } else {
+        String::new()
+    };
     outln!(
-        "residuals: median {:.3}, 95 % {:.3} monitor px; RMS {:.2} cell standard deviations; across the stripe edges median {:.3} monitor px",
+        "residuals: median {:.3}, 95 % {:.3} monitor px; RMS {:.2} cell standard deviations{edges}",
         cal.median_residual_px,
         cal.p95_residual_px,
-        cal.rms_normalised,
-        cal.edge_median_residual_px
+        cal.rms_normalised
     );
     if let Some(w) = &cal.warning {
         eprintln!("warning: {w}");
