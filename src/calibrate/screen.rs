@@ -187,7 +187,7 @@ pub fn calibrate_screen(
     }
     let guess = ransac_pose(&all, camera, pitch_mm)?;
     let sample = irregular_sample(&all, REFINE_POINTS, |c| pixel_key(c.pixel));
-    let scale = monitor_px_per_camera_px(&all.iter().collect::<Vec<_>>());
+    let scale = monitor_px_per_camera_px(&all);
     let edges = edge_lines(cap.edges.as_deref().unwrap_or(&[]), camera, scale);
     let edges = irregular_sample(&edges, REFINE_POINTS, |e| e.0);
     let constraints: Vec<Constraint> = (sample.iter().map(|&c| Constraint::Cell(c)))
@@ -263,7 +263,8 @@ fn ransac_pose(all: &[Correspondence], camera: &Camera, pitch_mm: f64) -> Result
         })
         .unzip();
     // The cells as the camera sees them: monitor pixels per camera pixel from an affine fit.
-    let threshold_px = 2.0 + best_cell / monitor_px_per_camera_px(&precise).max(1e-3);
+    let threshold_px =
+        2.0 + best_cell / monitor_px_per_camera_px(precise.iter().copied()).max(1e-3);
     let (k, dist) = camera_mats(camera)?;
     let (mut rvec, mut tvec, mut inliers) = (Mat::default(), Mat::default(), Mat::default());
     let found = opencv::calib3d::solve_pnp_ransac(
@@ -289,7 +290,7 @@ fn ransac_pose(all: &[Correspondence], camera: &Camera, pitch_mm: f64) -> Result
 
 /// The scale of the decoded coordinates against the pixel coordinates: √|det A| of the
 /// least-squares affine map (x, y) → (u, v).
-fn monitor_px_per_camera_px(cs: &[&Correspondence]) -> f64 {
+fn monitor_px_per_camera_px<'a>(cs: impl IntoIterator<Item = &'a Correspondence>) -> f64 {
     let mut ata = nalgebra::Matrix3::<f64>::zeros();
     let (mut atu, mut atv) = (Vector3::zeros(), Vector3::zeros());
     for c in cs {
