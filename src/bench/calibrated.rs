@@ -26,7 +26,7 @@ use super::ObjectMesh;
 use crate::calibrate::board::{read_images, Board};
 use crate::calibrate::camera::{calibrate_camera, CameraOptions};
 use crate::calibrate::screen;
-use crate::calibrate::turntable::calibrate_turntable;
+use crate::calibrate::turntable::{calibrate_turntable, Fitted};
 use crate::eval::EvalReport;
 use crate::hull::HullOptions;
 use crate::mesh::io::{read_mesh, write_mesh};
@@ -255,6 +255,7 @@ fn calibrated_scan(truth: &Scan, dir: &Path) -> Result<CalibrationErrors> {
         &setup.turntable_angles_deg,
         &board(setup.turntable_square_mm),
         &cam.camera,
+        Fitted::CornersAndEdges,
     )?;
     if let Some(p) = cam.problem().or(axis.problem()) {
         anyhow::bail!("{}: {p}", truth.dir.display());

@@ -4,6 +4,7 @@
 
 pub mod board;
 pub mod camera;
+pub mod grid_edges;
 pub mod screen;
 pub mod turntable;
 

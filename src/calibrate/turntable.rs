@@ -1,7 +1,8 @@
 //! `calibrate turntable`: the rotation axis from a chessboard turned on the turntable, one image
 //! per known angle. Each image's board pose (OpenCV PnP) starts a joint least-squares fit
 //! (Levenberg–Marquardt, in-house): one axis (direction and point), one board pose at angle 0,
-//! and every corner of every image reprojected through the lens model.
+//! and every corner of every image reprojected through the lens model — with, unless asked not
+//! to, the sub-pixel points along the board's grid lines ([`super::grid_edges`]) beside them.
 //!
 //! Convention (as [`crate::rig::Turntable`]): at angle θ the board is turned by θ right-handed
 //! about the axis direction. The reported axis point is the one nearest the board's origin at
@@ -17,6 +18,7 @@ use nalgebra::{
 use opencv::core::{Mat, Point2d, Point3d, Vector};
 
 use super::board::{square_side_px, Board, BoardImage};
+use super::grid_edges::{grid_edges, GridEdge};
 use super::{camera_mats, pose_from_vectors};
 use crate::rig::Camera;
 
@@ -41,6 +43,10 @@ pub struct TurntableCalibration {
     pub axis_dir: Unit<Vector3<f64>>,
     /// RMS reprojection error over every corner, pixels.
     pub rms_px: f64,
+    /// Grid-line points fitted beside the corners, and their RMS distance from the fitted
+    /// lines, pixels (NaN without them).
+    pub edges: usize,
+    pub edge_rms_px: f64,
     pub views: Vec<TurntableView>,
     /// Images in which the board was not found.
     pub skipped: Vec<PathBuf>,
@@ -82,6 +88,8 @@ struct Observation {
     /// The board's smallest square side in the image, pixels.
     square_px: f64,
     pose: Isometry3<f64>,
+    /// Points on the board's grid lines (empty when the fit uses the corners alone).
+    edges: Vec<GridEdge>,
 }
 
 /// Rotation by `theta` about the axis through `c` along `d`.
@@ -90,12 +98,22 @@ fn about_axis(d: &Unit<Vector3<f64>>, c: &Point3<f64>, theta: f64) -> Isometry3<
     Isometry3::from_parts(Translation3::from(c.coords - r * c.coords), r)
 }
 
+/// Which image measurements the axis is fitted to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fitted {
+    /// The corners and the points along the grid lines (the default).
+    CornersAndEdges,
+    /// The corners alone (to compare).
+    Corners,
+}
+
 /// Fits the axis to `images` taken at `angles_deg` (one per image, same order).
 pub fn calibrate_turntable(
     images: &[BoardImage],
     angles_deg: &[f64],
     board: &Board,
     camera: &Camera,
+    fitted: Fitted,
 ) -> Result<TurntableCalibration> {
     if angles_deg.len() != images.len() {
         bail!(
@@ -105,7 +123,8 @@ pub fn calibrate_turntable(
         );
     }
     let object = board.object_points();
-    let Observed { obs, used, skipped } = observe(images, angles_deg, (board, &object), camera)?;
+    let Observed { obs, used, skipped } =
+        observe(images, angles_deg, (board, &object), camera, fitted)?;
     if obs.len() < 3 {
         bail!(
             "the board was found in {} of {} images; the axis needs at least 3",
@@ -132,10 +151,16 @@ pub fn calibrate_turntable(
     let c = c + d.into_inner() * d.dot(&(o - c.coords));
     let residuals = fit.residuals(&x);
     let views = fit.view_reports(&x, (&d, &base), used, &residuals);
+    let corners = obs.len() * object.len();
+    let squares = |r: &[f64]| r.iter().map(|e| e * e).sum::<f64>();
+    // Two residuals (x, y) a corner, one a grid point.
+    let (at_corners, at_edges) = residuals.as_slice().split_at(2 * corners);
     Ok(TurntableCalibration {
         axis_point: c,
         axis_dir: d,
-        rms_px: (residuals.norm_squared() / (obs.len() * object.len()) as f64).sqrt(),
+        rms_px: (squares(at_corners) / corners as f64).sqrt(),
+        edges: at_edges.len(),
+        edge_rms_px: (squares(at_edges) / at_edges.len() as f64).sqrt(),
         views,
         skipped,
         square_px: crate::util::median(obs.iter().map(|o| o.square_px).collect()),
@@ -152,12 +177,14 @@ struct Observed {
 }
 
 /// The board in each of `images` (taken at `angles_deg`): its corners and its pose by PnP with
-/// the calibrated `camera` (`object`: the board's corners in its own frame, mm).
+/// the calibrated `camera` (`object`: the board's corners in its own frame, mm), and the points
+/// along its grid lines when they are `fitted`.
 fn observe(
     images: &[BoardImage],
     angles_deg: &[f64],
     (board, object): (&Board, &[Point3<f64>]),
     camera: &Camera,
+    fitted: Fitted,
 ) -> Result<Observed> {
     let object_cv: Vector<Point3d> = object.iter().map(|p| Point3d::new(p.x, p.y, p.z)).collect();
     let (k, dist) = camera_mats(camera)?;
@@ -179,11 +206,17 @@ fn observe(
             false,
             opencv::calib3d::SOLVEPNP_ITERATIVE,
         )?;
+        let pose = pose_from_vectors(&rvec, &tvec)?;
+        let edges = match fitted {
+            Fitted::CornersAndEdges => grid_edges(&im.image, board, camera, &pose)?,
+            Fitted::Corners => Vec::new(),
+        };
         obs.push(Observation {
             theta: a.to_radians(),
             square_px: square_side_px(&corners, board.cols as usize),
             corners,
-            pose: pose_from_vectors(&rvec, &tvec)?,
+            pose,
+            edges,
         });
         used.push((im.path.clone(), a));
     }
@@ -301,25 +334,29 @@ impl Fit<'_> {
         (d, c, Isometry3::from_parts(Translation3::from(t), rot))
     }
 
-    /// Reprojection residuals (pixels), image by image, corner by corner, x then y; a corner
-    /// behind the camera counts as 1e6 px.
+    /// Reprojection residuals (pixels): image by image, corner by corner, x then y; then image
+    /// by image each grid-line point's distance from its line. A point behind the camera
+    /// counts as 1e6 px.
     fn residuals(&self, x: &DVector<f64>) -> DVector<f64> {
         let (d, c, base) = self.params(x);
-        let mut r = DVector::zeros(2 * self.obs.len() * self.object.len());
-        let mut i = 0;
-        for o in self.obs {
-            let pose = about_axis(&d, &c, o.theta) * base;
+        let poses: Vec<Isometry3<f64>> = (self.obs.iter())
+            .map(|o| about_axis(&d, &c, o.theta) * base)
+            .collect();
+        let mut r = Vec::with_capacity(2 * self.obs.len() * self.object.len());
+        for (o, pose) in self.obs.iter().zip(&poses) {
             for (p, q) in self.object.iter().zip(&o.corners) {
-                let (ex, ey) = match self.camera.project(&(pose * p)) {
-                    Some(u) => (u.x - q.x, u.y - q.y),
-                    None => (1e6, 1e6),
-                };
-                r[i] = ex;
-                r[i + 1] = ey;
-                i += 2;
+                let e = self.camera.project(&(pose * p)).map(|u| u - q);
+                r.extend(e.map_or([1e6, 1e6], |e| [e.x, e.y]));
             }
         }
-        r
+        for (o, pose) in self.obs.iter().zip(&poses) {
+            r.extend(
+                o.edges
+                    .iter()
+                    .map(|e| e.residual(self.camera, pose).unwrap_or(1e6)),
+            );
+        }
+        DVector::from_vec(r)
     }
 
     /// The angle (radians) about the fitted axis at which the fitted board (parameters `x`)

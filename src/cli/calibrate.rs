@@ -9,7 +9,7 @@ use clap::{Args, Subcommand};
 use glasscan::calibrate::board::{read_images, Board};
 use glasscan::calibrate::camera::{calibrate_camera, CameraOptions, OUTLIER_FACTOR};
 use glasscan::calibrate::screen;
-use glasscan::calibrate::turntable::calibrate_turntable;
+use glasscan::calibrate::turntable::{calibrate_turntable, Fitted};
 use glasscan::rig::calib_io;
 use glasscan::scan::ScanConfig;
 use glasscan::util::paths::{ensure_extension, ensure_output_spares_inputs};
@@ -103,6 +103,10 @@ pub struct TurntableArgs {
     /// shows a wrong --square-mm.
     #[arg(long)]
     pub screen: Option<PathBuf>,
+    /// Fit the corners alone, without the points along the board's grid lines (for a board
+    /// whose squares are not plain black and white, e.g. printed over).
+    #[arg(long)]
+    pub corners_only: bool,
     /// Write the turntable file even when the fit is outside the trusted limits (a warning then).
     #[arg(long)]
     pub force: bool,
@@ -278,7 +282,12 @@ fn turntable(a: &TurntableArgs) -> Result<()> {
             camera.height
         );
     }
-    let cal = calibrate_turntable(&images, &a.angles, &board, &camera)?;
+    let fitted = if a.corners_only {
+        Fitted::Corners
+    } else {
+        Fitted::CornersAndEdges
+    };
+    let cal = calibrate_turntable(&images, &a.angles, &board, &camera, fitted)?;
     for p in &cal.skipped {
         eprintln!("warning: {}: board not found, image skipped", p.display());
     }
@@ -306,6 +315,13 @@ fn turntable(a: &TurntableArgs) -> Result<()> {
         cal.rms_px,
         cal.views.len()
     );
+    if cal.edges > 0 {
+        outln!(
+            "{} points along the grid lines, {:.3} px RMS from them",
+            cal.edges,
+            cal.edge_rms_px
+        );
+    }
     outln!("wrote {}", a.output.display());
     Ok(())
 }

@@ -284,7 +284,7 @@ fn render_set(
 ) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     poses.par_iter().enumerate().try_for_each(|(k, pose)| {
-        let mut img = render_board(cam, pose, b);
+        let mut img = render_board(cam, pose, b, seed.wrapping_add(k as u64));
         write_sensor_image(
             &dir.join(format!("board_{k:02}.png")),
             &mut img,
@@ -295,9 +295,13 @@ fn render_set(
     })
 }
 
-/// The grey image of the board at `pose` (board → camera), 6 × 6 samples per pixel; each
-/// pixel's sample rays come from its centre ray and the ray's derivatives across the pixel.
-fn render_board(cam: &Camera, pose: &Isometry3<f64>, b: &Board) -> Vec<f32> {
+/// The grey image of the board at `pose` (board → camera), 6 × 6 samples per pixel, each at a
+/// random place within its cell of the pixel (drawn from `seed`, row by row): on a regular grid
+/// of samples every pixel an edge crosses would see it at a multiple of 1/6 pixel, and the
+/// error, the same all along a straight edge, would move the corners and lines found by up to
+/// 1/12 pixel. Each pixel's sample rays come from its centre ray and the ray's derivatives
+/// across the pixel.
+fn render_board(cam: &Camera, pose: &Isometry3<f64>, b: &Board, seed: u64) -> Vec<f32> {
     let inv = pose.inverse();
     let (o, n) = (inv * Point3::origin(), 6usize);
     let s = b.square_mm;
@@ -316,6 +320,7 @@ fn render_board(cam: &Camera, pose: &Isometry3<f64>, b: &Board) -> Vec<f32> {
     let w = cam.width as usize;
     let mut img = vec![0.0f32; w * cam.height as usize];
     img.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+        let mut rng = ChaCha8Rng::seed_from_u64(scatter_seed(seed) ^ (v as u64) << 32);
         for (u, px) in row.iter_mut().enumerate() {
             let (uf, vf) = (u as f64, v as f64);
             let ray = |du: f64, dv: f64| cam.pixel_ray(uf + du, vf + dv).map(|r| inv * r);
@@ -329,8 +334,8 @@ fn render_board(cam: &Camera, pose: &Isometry3<f64>, b: &Board) -> Vec<f32> {
             for a in 0..n {
                 for c in 0..n {
                     let (fu, fv) = (
-                        (a as f64 + 0.5) / n as f64 - 0.5,
-                        (c as f64 + 0.5) / n as f64 - 0.5,
+                        (a as f64 + rng.random::<f64>()) / n as f64 - 0.5,
+                        (c as f64 + rng.random::<f64>()) / n as f64 - 0.5,
                     );
                     let r: Vector3<f64> = r0 + du * fu + dv * fv;
                     let t = -o.z / r.z;
