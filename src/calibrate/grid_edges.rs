@@ -27,6 +27,10 @@ const MIN_CONTRAST: f64 = 30.0;
 /// Points are taken along the middle of each square's side, from this share of the side to one
 /// minus it: nearer a corner the profile crosses the neighbouring squares.
 const END_SHARE: f64 = 0.25;
+/// The furthest a step may lie from where the board's pose (PnP on its corners, within a few
+/// hundredths of a square) puts it, as a share of the square's side: further, something else
+/// than the two squares (glare, a mark, a shadow) shapes the profile.
+const MAX_OFFSET_SHARE: f64 = 0.1;
 /// Points along a side, at most one per this many pixels of its image.
 const STEP_PX: f64 = 1.0;
 
@@ -142,7 +146,8 @@ fn side_edges(
 /// k = −w…w (n the unit direction from the first square to the second, w as wide as stays a
 /// pixel and a half inside both squares), each as its share of the way from the first square's
 /// grey to the second's; the step lies at w + ½ − (the shares' sum) along n. `None` where the
-/// squares are too small or too alike, or the step falls outside the samples.
+/// squares are too small or too alike, or the step lies further from `p` than
+/// [`MAX_OFFSET_SHARE`] of the distance between the centres (a square's side).
 fn step_across(
     grey: &Grey,
     p: Point2<f64>,
@@ -165,7 +170,7 @@ fn step_across(
         sum += (grey.at(p + n * k as f64)? - g1) / (g2 - g1);
     }
     let t = w as f64 + 0.5 - sum;
-    (t.abs() <= w as f64).then(|| p + n * t)
+    (t.abs() <= MAX_OFFSET_SHARE * (c2 - c1).norm()).then(|| p + n * t)
 }
 
 /// An 8-bit grey image, sampled bilinearly.
@@ -249,8 +254,13 @@ mod tests {
                 assert!((found.y - 20.0).abs() < 1e-12);
             }
         }
-        // Squares too small for a pixel and a half either side, or a point not between the
-        // squares, give nothing.
+        // A step 2 px from where it was expected (a sixth of the 12 px square), squares too
+        // small for a pixel and a half either side, or a point not between the squares, give
+        // nothing.
+        let far = step_image(22.0, 0.0);
+        let centres = (Point2::new(14.0, 20.0), Point2::new(26.0, 20.0));
+        let at = Point2::new(20.0, 20.0);
+        assert!(step_across(&Grey::new(&far).unwrap(), at, centres).is_none());
         let image = step_image(20.0, 0.0);
         let grey = Grey::new(&image).unwrap();
         let p = Point2::new(20.0, 20.0);

@@ -103,7 +103,8 @@ fn about_axis(d: &Unit<Vector3<f64>>, c: &Point3<f64>, theta: f64) -> Isometry3<
 pub enum Fitted {
     /// The corners and the points along the grid lines (the default).
     CornersAndEdges,
-    /// The corners alone (to compare).
+    /// The corners alone (`--corners-only`: for a board whose squares are not plain black and
+    /// white, or to compare).
     Corners,
 }
 
