@@ -320,7 +320,7 @@ fn render_board(cam: &Camera, pose: &Isometry3<f64>, b: &Board, seed: u64) -> Ve
     let w = cam.width as usize;
     let mut img = vec![0.0f32; w * cam.height as usize];
     img.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
-        let mut rng = ChaCha8Rng::seed_from_u64(scatter_seed(seed) ^ (v as u64) << 32);
+        let mut rng = ChaCha8Rng::seed_from_u64(scatter_seed(seed) ^ ((v as u64) << 32));
         for (u, px) in row.iter_mut().enumerate() {
             let (uf, vf) = (u as f64, v as f64);
             let ray = |du: f64, dv: f64| cam.pixel_ray(uf + du, vf + dv).map(|r| inv * r);
