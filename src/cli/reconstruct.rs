@@ -152,18 +152,25 @@ fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
         checkpoint.stages.iter().map(|s| s.seconds).sum::<f64>()
     );
     if let Some(i) = &outcome.index {
-        let how = if i.given.is_auto() {
-            "estimated"
-        } else {
-            "given"
+        let how = match i.estimate {
+            None => "given".into(),
+            Some(e) if (e - i.used).abs() < 5e-5 => "estimated".into(),
+            Some(_) => format!(
+                "estimated by the last stage; the result, stage {}, was made at {:.4}",
+                outcome.result_stage + 1,
+                i.used
+            ),
         };
         let fit = i.held_out_best.map_or(String::new(), |b| {
             format!(
-                "; the held-out views fit {:.4} ± {:.4} best",
+                "; the held-out views fit {:.4} ± {:.4} best with the result",
                 b.ior, b.spread
             )
         });
-        outln!("refractive index {:.4} ({how}){fit}", i.used);
+        outln!(
+            "refractive index {:.4} ({how}){fit}",
+            i.estimate.unwrap_or(i.used)
+        );
     }
     if let Some(c) = &outcome.confidence {
         outln!(

@@ -18,6 +18,7 @@
 use anyhow::Result;
 use serde::Serialize;
 
+use super::checkpoint::StageReport;
 use super::config::Settings;
 use super::terms::{refraction_over, Sample};
 use super::validation::Split;
@@ -96,6 +97,11 @@ pub struct IndexReport {
     pub given: Ior,
     /// The index the result was made at: the given one, or its stage's estimate.
     pub used: f64,
+    /// An unknown index's estimate: the last stage's, made with the finest mesh ([`estimate`]);
+    /// the same as `used` unless the held-out views chose an earlier stage's mesh. `None` for a
+    /// given index.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub estimate: Option<f64>,
     /// The index the held-out views fit best with the result's shape (`None`: no views held
     /// out, or the term has no minimum within reach).
     pub held_out_best: Option<BestFit>,
@@ -122,28 +128,40 @@ impl IndexReport {
         })
     }
 
+    /// The estimate is pinned when it or the result's index lies at a bound; the held-out
+    /// views judge the result's index, with the result's mesh.
     fn estimate_warning(&self, lo: f64, hi: f64) -> Option<String> {
         let used = self.used;
-        if let Some(bound) = [lo, hi]
+        let estimate = self.estimate.unwrap_or(used);
+        if let Some((index, bound)) = [estimate, used]
             .into_iter()
-            .find(|b| (used - b).abs() <= BOUND_MARGIN)
+            .flat_map(|i| [(i, lo), (i, hi)])
+            .find(|(i, b)| (i - b).abs() <= BOUND_MARGIN)
         {
             return Some(format!(
-                "the refractive index estimate {used:.4} lies at the range's bound {bound}: the index may lie outside {lo}–{hi}, or these captures may not settle it; give a wider range (ior = {{ auto = [lo, hi] }}) or the index"
+                "the refractive index estimate {index:.4} lies at the range's bound {bound}: the index may lie outside {lo}–{hi}, or these captures may not settle it; give a wider range (ior = {{ auto = [lo, hi] }}) or the index"
             ));
         }
         let Some(best) = self.held_out_best else {
             return Some(format!(
-                "the estimate {used:.4} is unconfirmed: the held-out views find no best-fitting index with the result (or the run holds no views out)"
+                "the estimate {used:.4} the result was made at is unconfirmed: the held-out views find no best-fitting index with the result (or the run holds no views out)"
             ));
         };
         ((best.ior - used).abs() > WARN_OFFSET).then(|| {
             format!(
-                "the held-out views fit a refractive index of {:.3} better than the estimate {used:.4}: the estimate is not settled",
+                "the held-out views fit a refractive index of {:.3} better than the estimate {used:.4} the result was made at: the estimate is not settled",
                 best.ior
             )
         })
     }
+}
+
+/// An unknown index's estimate from a run's `stages`: the last stage's, whose mesh is the finest
+/// and whose index has had every stage to settle, whichever stage's mesh the held-out views
+/// choose as the result (docs/decisions.md#glass-of-unknown-index). `None` for a given index,
+/// or before a stage has recorded one.
+pub fn estimate(given: Ior, stages: &[StageReport]) -> Option<f64> {
+    given.is_auto().then(|| stages.last()?.ior).flatten()
 }
 
 /// The range the search for the best-fitting index keeps to: an unknown index's range, or
@@ -241,6 +259,7 @@ mod tests {
         IndexReport {
             given,
             used: given.nominal(),
+            estimate: given.is_auto().then(|| given.nominal()),
             held_out_best: Some(BestFit {
                 ior: best,
                 spread: 0.003,
@@ -295,6 +314,29 @@ mod tests {
         assert!(unconfirmed.warning().unwrap().contains("unconfirmed"));
         let far = report_at(auto, 1.55 + 1.5 * WARN_OFFSET);
         assert!(far.warning().unwrap().contains("not settled"));
+    }
+
+    #[test]
+    fn the_estimate_is_the_last_stages_and_its_bound_warns_too() {
+        let auto = Ior::Auto { lo: 1.4, hi: 1.7 };
+        let stage = |ior| StageReport {
+            ior,
+            ..StageReport::default()
+        };
+        let stages = [stage(Some(1.44)), stage(Some(1.58)), stage(Some(1.598))];
+        assert_eq!(estimate(auto, &stages), Some(1.598));
+        assert_eq!(estimate(Ior::Known(1.5), &stages), None);
+        assert_eq!(estimate(auto, &[]), None);
+        assert_eq!(estimate(auto, &[stage(None)]), None);
+        // The result made at 1.55 (an earlier stage), the last stage's estimate at the ceiling.
+        let pinned = IndexReport {
+            estimate: Some(1.699),
+            ..report_at(auto, 1.56)
+        };
+        let w = pinned
+            .warning()
+            .expect("the estimate pinned at the ceiling");
+        assert!(w.contains("1.6990") && w.contains("bound 1.7"), "{w}");
     }
 
     #[test]

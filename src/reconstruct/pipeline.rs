@@ -238,8 +238,8 @@ fn used_index(inputs: &Inputs, finished: &Finished, result_stage: usize) -> f64 
         .unwrap_or_else(|| inputs.ior.nominal())
 }
 
-/// The index the result was made at, `used` (`given`, or its stage's estimate), and the
-/// held-out fit of the result (mesh `result`, of `finished`) about it, with the held-out
+/// The index the result was made at, `used` (`given`, or its stage's estimate), an unknown
+/// index's estimate (the last stage's), and the held-out fit of the result (mesh `result`, of `finished`) about it, with the held-out
 /// views' points marked for the camera's blur on the result (and corrected when the run
 /// corrects) wherever a blur is known.
 fn index_report(
@@ -262,6 +262,7 @@ fn index_report(
     Ok(IndexReport {
         given,
         used,
+        estimate: index::estimate(given, &finished.checkpoint.stages),
         held_out_best: index::held_out_best(inputs, &split, result, settings, from)?,
     })
 }
