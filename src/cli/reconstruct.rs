@@ -152,14 +152,16 @@ fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
         checkpoint.stages.iter().map(|s| s.seconds).sum::<f64>()
     );
     if let Some(i) = &outcome.index {
-        let how = match i.estimate {
-            None => "given".into(),
-            Some(e) if (e - i.used).abs() < 5e-5 => "estimated".into(),
-            Some(_) => format!(
-                "estimated by the last stage; the result, stage {}, was made at {:.4}",
-                outcome.result_stage + 1,
-                i.used
-            ),
+        let (index, used) = (i.estimate.unwrap_or(i.used), format!("{:.4}", i.used));
+        let how = if !i.given.is_auto() {
+            "given".into()
+        } else if format!("{index:.4}") == used {
+            "estimated".into()
+        } else {
+            format!(
+                "estimated by the last stage; the result, stage {}, was made at {used}",
+                outcome.result_stage + 1
+            )
         };
         let fit = i.held_out_best.map_or(String::new(), |b| {
             format!(
@@ -167,10 +169,7 @@ fn print_summary(a: &ReconstructArgs, outcome: &Outcome) -> Result<()> {
                 b.ior, b.spread
             )
         });
-        outln!(
-            "refractive index {:.4} ({how}){fit}",
-            i.estimate.unwrap_or(i.used)
-        );
+        outln!("refractive index {index:.4} ({how}){fit}");
     }
     if let Some(c) = &outcome.confidence {
         outln!(

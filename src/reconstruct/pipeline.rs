@@ -239,9 +239,9 @@ fn used_index(inputs: &Inputs, finished: &Finished, result_stage: usize) -> f64 
 }
 
 /// The index the result was made at, `used` (`given`, or its stage's estimate), an unknown
-/// index's estimate (the last stage's), and the held-out fit of the result (mesh `result`, of `finished`) about it, with the held-out
-/// views' points marked for the camera's blur on the result (and corrected when the run
-/// corrects) wherever a blur is known.
+/// index's estimate (the last stage's), and the held-out fit of the result (mesh `result`, of
+/// `finished`) about `used`, with the held-out views' points marked for the camera's blur on the
+/// result (and corrected when the run corrects) wherever a blur is known.
 fn index_report(
     inputs: &Inputs,
     given: Ior,
