@@ -12,15 +12,23 @@ use nalgebra::Vector3;
 
 use crate::common::{ok, refused, run, s};
 
-/// Runs `glasscan ARGS` in a virtual X server (package xvfb; `make test` installs it).
+/// Runs `glasscan ARGS` in a virtual X server (package xvfb; `make test` installs it). The X
+/// authority file lives in a folder of the test's own: left to make and remove its own,
+/// `xvfb-run` once failed to remove it under load and exited 5 in place of glasscan's status.
 fn glasscan_in_xvfb(args: &[&str]) -> std::process::Output {
     let xvfb = Path::new("/usr/bin/xvfb-run");
     assert!(
         xvfb.is_file(),
         "xvfb-run is missing: `sudo apt-get install xvfb` (make test installs it)"
     );
+    let auth = tempfile::tempdir().unwrap();
+    let auth_file = auth.path().join("Xauthority");
+    std::fs::File::create(&auth_file).unwrap();
     run(std::process::Command::new(xvfb)
-        .args(["-a", env!("CARGO_BIN_EXE_glasscan")])
+        .arg("-a")
+        .arg("--auth-file")
+        .arg(&auth_file)
+        .arg(env!("CARGO_BIN_EXE_glasscan"))
         .args(args))
 }
 
