@@ -159,8 +159,8 @@ pub(super) fn run_next_stage(
     let t_validation = Instant::now();
     let (validation, averaged) =
         settle_stage((inputs, split, ior), &mut mesh, mean, &checkpoint.settings)?;
-    // Read at one moment, the validation's end before the stage's, so that the parts never
-    // add up past the whole, however the threads are scheduled.
+    // Read at one moment, the validation's end before the stage's and before the mesh's check,
+    // so that the parts never add up past the whole, however long the check takes under load.
     let seconds_validation = t_validation.elapsed().as_secs_f64();
     let seconds = seconds_blur + t0.elapsed().as_secs_f64();
     let report = StageReport {
