@@ -19,7 +19,7 @@ use anyhow::Result;
 use serde::Serialize;
 
 use super::checkpoint::StageReport;
-use super::config::Settings;
+use super::config::{Settings, AUTO_FOOTPRINT};
 use super::terms::{refraction_over, Sample};
 use super::validation::Split;
 use super::Inputs;
@@ -35,6 +35,35 @@ pub fn pass_settings(settings: &Settings) -> Settings {
         final_edge: settings.start_edge,
         // Its coarse mesh is too far from the object to correct the points on.
         blur_correction: false,
+        ..settings.clone()
+    }
+}
+
+/// Rays per side of the footprint by which a run that estimates the index of curved glass
+/// models each pixel decoded from captures (at least; the settings' own when larger).
+pub const FIT_FOOTPRINT: u32 = 2;
+
+/// How many times its settings' iterations a run that estimates the index of curved glass
+/// decoded from captures runs each stage.
+pub const FIT_ITERATIONS: usize = 2;
+
+/// The settings of a run that estimates the index: `settings`, but through curved glass decoded
+/// from captures (`curved_captures`, [`Inputs::curved_captures`]) each pixel modelled by at
+/// least [`FIT_FOOTPRINT`]² rays over [`FIT_ITERATIONS`] times the iterations. A pixel's decoded
+/// point is its footprint's vote, which the centre ray misses where the glass bends the
+/// footprint unevenly, most where it magnifies; and shape and index walk on together for as
+/// long as the stages run (docs/decisions.md#glass-of-unknown-index).
+pub fn estimating_settings(settings: &Settings, curved_captures: bool) -> Settings {
+    if !curved_captures {
+        return settings.clone();
+    }
+    let footprint = match settings.footprint {
+        AUTO_FOOTPRINT => FIT_FOOTPRINT,
+        n => n.max(FIT_FOOTPRINT),
+    };
+    Settings {
+        footprint,
+        iterations: settings.iterations * FIT_ITERATIONS,
         ..settings.clone()
     }
 }
@@ -337,6 +366,34 @@ mod tests {
             .warning()
             .expect("the estimate pinned at the ceiling");
         assert!(w.contains("1.6990") && w.contains("bound 1.7"), "{w}");
+    }
+
+    #[test]
+    fn curved_captures_estimate_the_index_with_a_footprint_over_twice_the_iterations() {
+        use super::super::config::Preset;
+        let balanced = Settings::preset(Preset::Balanced);
+        assert_eq!(estimating_settings(&balanced, false), balanced);
+        let fit = estimating_settings(&balanced, true);
+        assert_eq!(fit.footprint, FIT_FOOTPRINT);
+        assert_eq!(fit.iterations, FIT_ITERATIONS * balanced.iterations);
+        let unchanged = Settings {
+            footprint: balanced.footprint,
+            iterations: balanced.iterations,
+            ..fit.clone()
+        };
+        assert_eq!(unchanged, balanced);
+        // A larger footprint is kept; a footprint left to the run becomes the fit's.
+        let four = Settings {
+            footprint: 4,
+            ..balanced
+        };
+        assert_eq!(estimating_settings(&four, true).footprint, 4);
+        let accurate = Settings::preset(Preset::Accurate);
+        assert_eq!(accurate.footprint, AUTO_FOOTPRINT);
+        assert_eq!(
+            estimating_settings(&accurate, true).footprint,
+            FIT_FOOTPRINT
+        );
     }
 
     #[test]

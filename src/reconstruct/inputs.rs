@@ -40,6 +40,11 @@ pub struct Inputs {
     /// shifted, or not measured). Through flat faces the marks took the rays that settle the
     /// index: the block at 1.60 estimated 1.557 with them, 1.581 without.
     pub skew_marks: bool,
+    /// Whether the decoded points were measured from captures (they carry Gray bits; exact
+    /// correspondences do not) through glass that is not flat-faced by decode's measure (as for
+    /// [`Self::skew_marks`]): a run that estimates the index models each such pixel by a
+    /// footprint of rays ([`super::index::estimating_settings`]).
+    pub curved_captures: bool,
     /// What the inputs were read from ([`fingerprint`]); a run resumes only from the same.
     pub fingerprint: super::fingerprint::Fingerprint,
 }
@@ -93,6 +98,7 @@ pub fn load_inputs(
             scan.dir.display()
         ));
     }
+    let curved = flat_glass_share(decoded.summaries()).is_none_or(|s| s < FLAT_FACED_SCAN_SHARE);
     Ok((
         Inputs {
             ior: scan.config.ior,
@@ -102,8 +108,8 @@ pub fn load_inputs(
             silhouettes: Arc::new(silhouettes),
             blur: blur_source.sigma_px().and_then(BlurKernel::gaussian),
             blur_source,
-            skew_marks: blur_source.sigma_px().is_some()
-                && flat_glass_share(decoded.summaries()).is_none_or(|s| s < FLAT_FACED_SCAN_SHARE),
+            skew_marks: blur_source.sigma_px().is_some() && curved,
+            curved_captures: has_bits && curved,
             fingerprint: super::fingerprint::of_scan(scan, views)?,
         },
         warnings,
@@ -184,6 +190,7 @@ impl Inputs {
             blur: self.blur.clone(),
             blur_source: self.blur_source,
             skew_marks: self.skew_marks,
+            curved_captures: self.curved_captures,
             fingerprint: self.fingerprint.clone(),
         };
         Ok(Some((inputs, summary)))

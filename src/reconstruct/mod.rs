@@ -309,6 +309,7 @@ mod tests {
             blur: None,
             blur_source: Default::default(),
             skew_marks: false,
+            curved_captures: false,
             fingerprint: Default::default(),
         };
         checkpoint.stages_done = checkpoint.settings.warmup_stages;
@@ -376,6 +377,7 @@ mod tests {
             blur: None,
             blur_source: Default::default(),
             skew_marks: false,
+            curved_captures: false,
             fingerprint: Default::default(),
         };
         let measured = PixelBits {

@@ -70,7 +70,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     let Job {
         scan,
         views,
-        settings,
+        mut settings,
         start,
         out,
         existing,
@@ -92,6 +92,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     note_the_blur(&inputs, &settings, progress);
     let given = inputs.ior;
     if given.is_auto() {
+        settings = estimating_settings(settings, &inputs, progress);
         let main_committed = matches!(existing, Existing::Run(_));
         let pass = (start.clone(), main_committed);
         match index_pass(&inputs, pass, &settings, out, progress, stop)? {
@@ -173,6 +174,19 @@ fn stopped_outcome(finished: Finished, warnings: Vec<String>) -> Outcome {
         confidence: None,
         warnings,
     }
+}
+
+/// The settings of a run that estimates the index ([`index::estimating_settings`]), saying how
+/// they differ from `settings`.
+fn estimating_settings(settings: Settings, inputs: &Inputs, progress: &dyn Progress) -> Settings {
+    let estimating = index::estimating_settings(&settings, inputs.curved_captures);
+    if estimating != settings {
+        progress.note(&format!(
+            "curved glass decoded from captures: to estimate the index, each pixel is modelled by {0}×{0} rays over its area, {1} iterations a stage",
+            estimating.footprint, estimating.iterations
+        ));
+    }
+    estimating
 }
 
 /// The index pass of a run given `ior = "auto"` ([`index`]), in `out/index_pass` (continued

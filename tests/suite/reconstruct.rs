@@ -751,6 +751,8 @@ fn an_unknown_refractive_index_is_estimated_and_a_wrong_one_warns() {
     };
     let (_, known, known_accuracy, _) = run("known", "1.4723");
     let (_, auto, auto_accuracy, said) = run("auto", "auto");
+    // Exact correspondences: the settings as given.
+    assert_eq!(auto["settings"], known["settings"]);
     let estimate = auto["ior"]["estimate"].as_f64().unwrap();
     assert!(auto["ior"]["used"].as_f64().is_some(), "{}", auto["ior"]);
     assert!(known["ior"]["estimate"].is_null(), "{}", known["ior"]);
