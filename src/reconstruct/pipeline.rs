@@ -92,7 +92,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     note_the_blur(&inputs, &settings, progress);
     let given = inputs.ior;
     if given.is_auto() {
-        settings = estimating_settings(settings, &inputs, progress);
+        settings = settings_to_estimate(settings, &inputs, progress);
         let main_committed = matches!(existing, Existing::Run(_));
         let pass = (start.clone(), main_committed);
         match index_pass(&inputs, pass, &settings, out, progress, stop)? {
@@ -178,7 +178,7 @@ fn stopped_outcome(finished: Finished, warnings: Vec<String>) -> Outcome {
 
 /// The settings of a run that estimates the index ([`index::estimating_settings`]), saying how
 /// they differ from `settings`.
-fn estimating_settings(settings: Settings, inputs: &Inputs, progress: &dyn Progress) -> Settings {
+fn settings_to_estimate(settings: Settings, inputs: &Inputs, progress: &dyn Progress) -> Settings {
     let estimating = index::estimating_settings(&settings, inputs.curved_captures);
     if estimating != settings {
         progress.note(&format!(
