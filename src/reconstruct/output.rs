@@ -25,9 +25,23 @@ pub fn stage_path(out: &Path, s: usize) -> PathBuf {
     out.join(format!("stage_{s:02}.ply"))
 }
 
-/// The folder, inside a run's output folder, of the pass that estimates an unknown refractive
-/// index (`ior = "auto"`): a run of its own, with its own checkpoint.
+/// The folder, inside a run's output folder, of the first pass of a run given an unknown
+/// refractive index (`ior = "auto"`), which finds where to start it: a run of its own, with its
+/// own checkpoint.
 pub const INDEX_PASS: &str = "index_pass";
+
+/// The folder, inside a run's output folder, of the pass that estimates an unknown index with
+/// the shape when the run is then given the estimate (through curved glass decoded from
+/// captures): a run of its own, with its own checkpoint.
+pub const INDEX_FIT: &str = "index_fit";
+
+/// The folders of the passes a run may hold ([`INDEX_PASS`], [`INDEX_FIT`]).
+const PASSES: [&str; 2] = [INDEX_PASS, INDEX_FIT];
+
+/// True for the name of a pass's folder ([`PASSES`]).
+fn is_pass(name: &str) -> bool {
+    PASSES.contains(&name)
+}
 
 /// What an output folder held when a run was asked to write into it.
 #[derive(Debug)]
@@ -60,11 +74,11 @@ fn is_glasscan_file(name: &str) -> bool {
         .contains(&name)
 }
 
-/// True for an entry of `out` that glasscan's reconstruction writes: one of its files, or the
-/// index pass's folder holding nothing else.
+/// True for an entry of `out` that glasscan's reconstruction writes: one of its files, or a
+/// pass's folder holding nothing else.
 fn is_glasscan_entry(out: &Path, name: &str) -> Result<bool> {
     let path = out.join(name);
-    if name == INDEX_PASS && path.is_dir() {
+    if is_pass(name) && path.is_dir() {
         return Ok(folder_entries(&path)?.iter().all(|n| is_glasscan_file(n)));
     }
     Ok(is_glasscan_file(name))
@@ -132,8 +146,8 @@ pub fn commit(out: &Path, checkpoint: &Checkpoint) -> Result<()> {
 ///   `force`, refused otherwise.
 /// - A folder holding only glasscan's files but no committed checkpoint (a run killed before its
 ///   first commit): started anew with `resume` or `force` (the files are leftovers), refused
-///   otherwise; but with `resume`, a committed index pass ([`INDEX_PASS`]) is kept, to be
-///   continued.
+///   otherwise; but with `resume`, committed passes ([`INDEX_PASS`], [`INDEX_FIT`]) are kept,
+///   to be continued.
 /// - A folder holding other files: always refused (`force` never deletes what glasscan did not
 ///   write).
 ///
@@ -171,8 +185,9 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
         Err(_) if force => None,
         other => other?,
     };
-    let index_pass = out.join(INDEX_PASS);
-    let index_pass_committed = checkpoint_path(&index_pass).is_file();
+    let committed_pass = (PASSES.iter().map(|n| out.join(n)))
+        .filter(|p| checkpoint_path(p).is_file())
+        .last();
     match committed {
         Some(checkpoint) if resume && !force => Ok(Existing::Run(Box::new(checkpoint))),
         Some(checkpoint) if !force => bail!(
@@ -182,19 +197,19 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
             checkpoint.stages_done,
             checkpoint.settings.total_stages()
         ),
-        None if index_pass_committed && !(resume || force) => bail!(
+        None if committed_pass.is_some() && !(resume || force) => bail!(
             "{} holds a run that is estimating the refractive index ({}): continue it with \
              --resume, start it over with --force, or choose another output folder",
             out.display(),
-            index_pass.display()
+            committed_pass.unwrap_or_default().display()
         ),
         None if !(resume || force) => bail!(
             "{} holds the files of a run that stopped before its first checkpoint: start it over \
              with --resume or --force, or choose another output folder",
             out.display()
         ),
-        None if index_pass_committed && resume && !force => {
-            let main: Vec<String> = names.into_iter().filter(|n| n != INDEX_PASS).collect();
+        None if committed_pass.is_some() && resume && !force => {
+            let main: Vec<String> = names.into_iter().filter(|n| !is_pass(n)).collect();
             clear(out, &main)?;
             Ok(Existing::Nothing)
         }
@@ -205,11 +220,11 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
     }
 }
 
-/// Removes glasscan's entries `names` from `out` (the index pass's folder with its files).
+/// Removes glasscan's entries `names` from `out` (a pass's folder with its files).
 fn clear(out: &Path, names: &[String]) -> Result<()> {
     for n in names {
         let p = out.join(n);
-        if n == INDEX_PASS && p.is_dir() {
+        if is_pass(n) && p.is_dir() {
             clear(&p, &folder_entries(&p)?)?;
             std::fs::remove_dir(&p)
         } else {

@@ -13,12 +13,12 @@ use anyhow::{bail, Result};
 use super::confidence::{self, Confidence, ConfidenceSummary};
 use super::config::Settings;
 use super::index::{self, IndexReport};
-use super::output::{committed_run, INDEX_PASS};
+use super::output::{committed_run, INDEX_FIT, INDEX_PASS};
 use super::plot::loss_plot;
 use super::validation::{best_stage, Split};
 use super::{
-    load_inputs, run, stage_path, Checkpoint, Existing, Finished, Inputs, Progress, Start,
-    StartMesh,
+    load_inputs, run, stage_path, Checkpoint, Existing, Finished, Inputs, Progress, StageReport,
+    Start, StartMesh,
 };
 use crate::eval::confidence::{error_by_confidence, ErrorByConfidence};
 use crate::eval::error_map::{confidence_legend, write_support_map};
@@ -70,7 +70,7 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     let Job {
         scan,
         views,
-        mut settings,
+        settings,
         start,
         out,
         existing,
@@ -91,12 +91,12 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     }
     note_the_blur(&inputs, &settings, progress);
     let given = inputs.ior;
+    let mut fit = None;
     if given.is_auto() {
-        settings = settings_to_estimate(settings, &inputs, progress);
         let main_committed = matches!(existing, Existing::Run(_));
-        let pass = (start.clone(), main_committed);
-        match index_pass(&inputs, pass, &settings, out, progress, stop)? {
-            Ok(estimate) => inputs.ior_start = Some(estimate),
+        let passes = (start.clone(), main_committed);
+        match estimate_index(&mut inputs, &settings, passes, out, progress, stop)? {
+            Ok(stages) => fit = stages,
             Err(stopped) => return Ok(stopped_outcome(stopped, warnings)),
         }
     }
@@ -109,7 +109,8 @@ pub fn reconstruct_scan(job: Job, progress: &dyn Progress, stop: &AtomicBool) ->
     let settings = &finished.checkpoint.settings;
     let surface = MeshSurface::with_mode(&result, settings.normals, BuildMode::Static)?;
     let used = used_index(&inputs, &finished, result_stage);
-    let index = index_report(&inputs, given, (&finished, used, &surface))?;
+    let estimated = fit.as_deref().unwrap_or(&finished.checkpoint.stages);
+    let index = index_report(&inputs, (given, estimated), (&finished, used, &surface))?;
     if let Some(w) = index.warning() {
         progress.note(&format!("warning: {w}"));
         warnings.push(w);
@@ -176,11 +177,11 @@ fn stopped_outcome(finished: Finished, warnings: Vec<String>) -> Outcome {
     }
 }
 
-/// The settings of a run that estimates the index ([`index::estimating_settings`]), saying how
-/// they differ from `settings`.
-fn settings_to_estimate(settings: Settings, inputs: &Inputs, progress: &dyn Progress) -> Settings {
-    let estimating = index::estimating_settings(&settings, inputs.curved_captures);
-    if estimating != settings {
+/// The settings that estimate the index ([`index::estimating_settings`]), saying how they differ
+/// from the run's `settings`.
+fn settings_to_estimate(settings: &Settings, inputs: &Inputs, progress: &dyn Progress) -> Settings {
+    let estimating = index::estimating_settings(settings, inputs.curved_captures);
+    if estimating != *settings {
         progress.note(&format!(
             "curved glass decoded from captures: to estimate the index, each pixel is modelled by {0}×{0} rays over its area, {1} iterations a stage",
             estimating.footprint, estimating.iterations
@@ -189,42 +190,83 @@ fn settings_to_estimate(settings: Settings, inputs: &Inputs, progress: &dyn Prog
     estimating
 }
 
-/// The index pass of a run given `ior = "auto"` ([`index`]), in `out/index_pass` (continued
-/// when committed there; `start` is the run's start mesh, `None` when the main run is committed,
-/// which it is only once the pass is complete): its estimate, or the stopped pass.
-fn index_pass(
-    inputs: &Inputs,
-    (start, main_committed): (Option<StartMesh>, bool),
+/// The passes of a run given `ior = "auto"` before it ([`index`]), with `settings` the run's: the
+/// first pass finds where to start the index (`inputs.ior_start`). With the same settings
+/// ([`index::estimating_settings`]) the run then estimates the index with the shape itself;
+/// otherwise a second pass, with the estimating settings, does, and the run is given its
+/// estimate (`inputs.ior`). `start` is the run's start mesh (`None` when the main run is
+/// committed, which it is only once the passes are complete). The second pass's stages, which
+/// hold the estimate, or the stopped pass.
+fn estimate_index(
+    inputs: &mut Inputs,
     settings: &Settings,
+    (start, main_committed): (Option<StartMesh>, bool),
     out: &Path,
     progress: &dyn Progress,
     stop: &AtomicBool,
-) -> Result<Result<f64, Finished>> {
-    let dir = out.join(INDEX_PASS);
+) -> Result<Result<Option<Vec<StageReport>>, Finished>> {
+    let estimating = settings_to_estimate(settings, inputs, progress);
+    let (lo, hi) = inputs.ior.range();
+    let first = index::pass_settings(&estimating);
+    progress.note(&format!(
+        "the refractive index is unknown ({lo}–{hi}): a first pass of {} stages finds where to start it, in {}",
+        first.total_stages(),
+        out.join(INDEX_PASS).display()
+    ));
+    let passes = (start.clone(), main_committed, out);
+    let first = match pass(inputs, passes.clone(), (INDEX_PASS, &first), progress, stop)? {
+        Ok(first) => first,
+        Err(stopped) => return Ok(Err(stopped)),
+    };
+    let start_at = first.checkpoint.index(inputs);
+    inputs.ior_start = Some(start_at);
+    if estimating == *settings {
+        progress.note(&format!(
+            "refractive index {start_at:.4} after the first pass: the run starts again from the start mesh at it, and estimates it with the shape from stage {} on",
+            settings.warmup_stages + 1
+        ));
+        return Ok(Ok(None));
+    }
+    progress.note(&format!(
+        "refractive index {start_at:.4} after the first pass: a second pass, in {}, starts again from the start mesh at it and estimates it with the shape; the run is then given its estimate, with its own settings",
+        out.join(INDEX_FIT).display()
+    ));
+    let fit = match pass(inputs, passes, (INDEX_FIT, &estimating), progress, stop)? {
+        Ok(fit) => fit,
+        Err(stopped) => return Ok(Err(stopped)),
+    };
+    let estimate = fit.checkpoint.index(inputs);
+    progress.note(&format!(
+        "refractive index {estimate:.4} estimated with the shape: the run starts again from the start mesh, given it"
+    ));
+    (inputs.ior, inputs.ior_start) = (Ior::Known(estimate), None);
+    Ok(Ok(Some(fit.checkpoint.stages)))
+}
+
+/// A pass of a run given `ior = "auto"` with `settings`, in `out/name` (continued when committed
+/// there; `start` is the run's start mesh, `None` when the main run is committed, which it is
+/// only once the passes are complete): the complete pass, or the stopped one.
+fn pass(
+    inputs: &Inputs,
+    (start, main_committed, out): (Option<StartMesh>, bool, &Path),
+    (name, settings): (&str, &Settings),
+    progress: &dyn Progress,
+    stop: &AtomicBool,
+) -> Result<Result<Finished, Finished>> {
+    let dir = out.join(name);
     let existing = committed_run(&dir)?;
     if main_committed && matches!(existing, Existing::Nothing) {
         bail!(
-            "--resume: {} (the pass that estimated the refractive index) is missing or has no checkpoint; start the run over with --force",
+            "--resume: {} (a pass that estimated the refractive index) is missing or has no checkpoint; start the run over with --force",
             dir.display()
         );
     }
-    let pass = index::pass_settings(settings);
-    let (lo, hi) = inputs.ior.range();
-    progress.note(&format!(
-        "the refractive index is unknown ({lo}–{hi}): a first pass of {} stages finds where to start it, in {}",
-        pass.total_stages(),
-        dir.display()
-    ));
-    let finished = run(inputs, start, &pass, &dir, existing, progress, stop)?;
-    if !finished.complete {
-        return Ok(Err(finished));
-    }
-    let estimate = finished.checkpoint.index(inputs);
-    progress.note(&format!(
-        "refractive index {estimate:.4} after the first pass: the run starts again from the start mesh at it, and estimates it with the shape from stage {} on",
-        settings.warmup_stages + 1
-    ));
-    Ok(Ok(estimate))
+    let finished = run(inputs, start, settings, &dir, existing, progress, stop)?;
+    Ok(if finished.complete {
+        Ok(finished)
+    } else {
+        Err(finished)
+    })
 }
 
 /// Says when the run corrects the decoded points for the camera's blur.
@@ -253,12 +295,13 @@ fn used_index(inputs: &Inputs, finished: &Finished, result_stage: usize) -> f64 
 }
 
 /// The index the result was made at, `used` (`given`, or its stage's estimate), an unknown
-/// index's estimate (the last stage's), and the held-out fit of the result (mesh `result`, of
+/// index's estimate (the last of the `estimated` stages: the run's, or its second pass's), and
+/// the held-out fit of the result (mesh `result`, of
 /// `finished`) about `used`, with the held-out views' points marked for the camera's blur on the
 /// result (and corrected when the run corrects) wherever a blur is known.
 fn index_report(
     inputs: &Inputs,
-    given: Ior,
+    (given, estimated): (Ior, &[StageReport]),
     (finished, used, result): (&Finished, f64, &MeshSurface),
 ) -> Result<IndexReport> {
     let settings = &finished.checkpoint.settings;
@@ -276,7 +319,7 @@ fn index_report(
     Ok(IndexReport {
         given,
         used,
-        estimate: index::estimate(given, &finished.checkpoint.stages),
+        estimate: index::estimate(given, estimated),
         held_out_best: index::held_out_best(inputs, &split, result, settings, from)?,
     })
 }

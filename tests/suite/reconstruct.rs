@@ -807,6 +807,68 @@ fn an_unknown_refractive_index_is_estimated_and_a_wrong_one_warns() {
     assert!(warnings.contains("at the range's bound 1.5"), "{warnings}");
 }
 
+/// Through curved glass decoded from captures (the ellipsoid of [`SEMI_AXES_MM`], 12 views at
+/// 240×180, rendered and decoded), `--ior auto` runs three runs: the first pass in
+/// `index_pass`, the second, with the estimating settings (2×2 rays a pixel, twice the
+/// iterations), in `index_fit`, and the run itself with the settings as given and the second
+/// pass's estimate as its index, which the report says it used. A run killed in its second pass
+/// resumes to the uninterrupted result, bit for bit.
+#[test]
+fn through_curved_captures_the_run_is_given_the_index_its_second_pass_estimates() {
+    let dir = tempfile::tempdir().unwrap();
+    let scan = dir.path().join("scan");
+    let opts = SimulateOptions {
+        views: 12,
+        width: 240,
+        height: 180,
+        spp: 1,
+        ..SimulateOptions::default()
+    };
+    let object = ellipsoid(Vector3::from(SEMI_AXES_MM), 4);
+    simulate(&object, &scan, &opts, |_| ()).unwrap();
+    crate::common::ok(&glasscan(&["decode", scan.to_str().unwrap()]));
+    let config = dir.path().join("c.toml");
+    std::fs::write(&config, CONFIG).unwrap();
+    let auto_args = |out: &Path| {
+        let mut args = reconstruct_args(&scan, &config, out);
+        args.extend(["--ior".into(), "auto".into()]);
+        args
+    };
+    let whole = dir.path().join("whole");
+    crate::common::ok(&glasscan(&auto_args(&whole)));
+    let report = read_report(&whole);
+    let fit: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(whole.join("index_fit/checkpoint.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(whole.join("index_pass/checkpoint.json").is_file());
+    assert_eq!(fit["settings"]["footprint"], 2, "{}", fit["settings"]);
+    assert_eq!(fit["settings"]["iterations"], 16, "{}", fit["settings"]);
+    assert_eq!(
+        report["settings"]["iterations"], 8,
+        "{}",
+        report["settings"]
+    );
+    let estimate = fit["stages"].as_array().unwrap().last().unwrap()["ior"]
+        .as_f64()
+        .unwrap();
+    assert_eq!(report["ior"]["estimate"].as_f64(), Some(estimate));
+    assert_eq!(report["ior"]["used"].as_f64(), Some(estimate));
+    for stage in report["stages"].as_array().unwrap() {
+        assert_eq!(stage["ior"].as_f64(), Some(estimate), "{stage}");
+    }
+    let killed = dir.path().join("killed");
+    let mut args = auto_args(&killed);
+    kill_after_first_stage(&args, &killed.join("index_fit"));
+    args.push("--resume".into());
+    crate::common::ok(&glasscan(&args));
+    assert_eq!(
+        std::fs::read(whole.join("result.ply")).unwrap(),
+        std::fs::read(killed.join("result.ply")).unwrap(),
+        "resumed result differs from the uninterrupted one"
+    );
+}
+
 /// The cut prism's exact scan (24 level views, 320×240, face normals; with `dent_mm` > 0, of
 /// the prism remeshed to 3 mm edges and dented that deep by [`dented_prism`]), loaded as
 /// `balanced` (face normals) loads it, with `mesh(the prism remeshed to 3 mm edges)` and the
