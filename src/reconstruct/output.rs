@@ -185,9 +185,8 @@ fn existing_run(out: &Path, resume: bool, force: bool) -> Result<Existing> {
         Err(_) if force => None,
         other => other?,
     };
-    let committed_pass = (PASSES.iter().map(|n| out.join(n)))
-        .filter(|p| checkpoint_path(p).is_file())
-        .last();
+    let committed_pass =
+        (PASSES.iter().map(|n| out.join(n))).rfind(|p| checkpoint_path(p).is_file());
     match committed {
         Some(checkpoint) if resume && !force => Ok(Existing::Run(Box::new(checkpoint))),
         Some(checkpoint) if !force => bail!(
