@@ -194,6 +194,8 @@ struct Interface {
     verts: [u32; 3],
     dir_in: V3,
     hit: PlaneHit,
+    /// |hit.n|: the triangle's geometric normal is hit.n / n_len.
+    n_len: f64,
     entering: bool,
     /// Vertex-normal model: barycentrics and the interpolated (unnormalised) normal's length.
     bary: (f64, f64),
@@ -526,7 +528,7 @@ fn trace_forward(
             match step {
                 Err(r) => paths[i] = Err(r),
                 Ok(it) => {
-                    let normal = it.hit.n / it.hit.n.norm();
+                    let normal = it.hit.n / it.n_len;
                     f.pass(it, interfaces);
                     next_batch.push(Ray::new(restart_origin(&f.o, &f.d, &normal, offset), f.d));
                     active[kept] = i;
@@ -552,6 +554,9 @@ struct TraceBuffers {
 /// Forward through one interface: the ray (o, d) meets triangle `prim`'s plane and refracts
 /// (face or interpolated vertex normal); everything the backward pass needs, or why the ray is
 /// dropped (cos θi or cos θt below `min_cos`).
+// Inlined into the trace loop, so that the interface is built where it is stored rather than
+// returned and copied (`bench gradient`: 0.70–0.71 of Embree alone against 0.68–0.69).
+#[inline(always)]
 fn refract_at(
     mesh: &MeshState,
     s: &RefractionSettings,
@@ -570,9 +575,10 @@ fn refract_at(
         (s.ior / s.ior_air, -1.0)
     };
     let deta_dior = -sign * eta / s.ior;
+    let n_len = hit.n.norm();
     let (mut bary, mut interp_norm) = ((0.0, 0.0), 0.0);
     let outward = match mesh.vertex_normals {
-        None => hit.n / hit.n.norm(),
+        None => hit.n / n_len,
         Some(vn) => {
             bary = barycentric(&hit.point, &tri, &hit.n);
             let vnormals = verts.map(|v| vn[v as usize]);
@@ -598,6 +604,7 @@ fn refract_at(
         verts,
         dir_in: *d,
         hit,
+        n_len,
         entering,
         bary,
         interp_norm,
@@ -672,8 +679,7 @@ fn interface_adjoint(
     let mut gpoint = *gp;
     match mesh.vertex_normals {
         None => {
-            gnormal +=
-                normalize_adjoint(&(it.hit.n / it.hit.n.norm()), it.hit.n.norm(), &g_outward);
+            gnormal += normalize_adjoint(&(it.hit.n / it.n_len), it.n_len, &g_outward);
         }
         Some(vn) => {
             let (w1, w2) = it.bary;
