@@ -19,7 +19,11 @@ pub mod silhouette;
 pub mod smoothness;
 pub mod targets;
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+
 use nalgebra::{Point3, Vector3};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::mesh::TriMesh;
@@ -144,12 +148,8 @@ impl Contributions {
 
     /// Empty, with room for `grad` and `ngrad` entries, reusing the lists of `spare` (whose
     /// memory is already touched) where it has one.
-    pub fn reusing(
-        spare: &std::sync::Mutex<Vec<Contributions>>,
-        grad: usize,
-        ngrad: usize,
-    ) -> Self {
-        let reused = spare.lock().ok().and_then(|mut s| s.pop());
+    pub fn reusing(spare: &Mutex<Vec<Contributions>>, grad: usize, ngrad: usize) -> Self {
+        let reused = lock(spare).pop();
         let Some(mut c) = reused else {
             return Self::with_capacity(grad, ngrad);
         };
@@ -198,7 +198,7 @@ pub struct Accumulator {
     /// Per vertex, the sum of the [`Contributions::penalties`] it receives (the penalties of
     /// the refraction pixels behind its touches); kept only by [`Self::counting`], else empty.
     pub penalty: Vec<f64>,
-    /// Chunks already added, emptied, whose lists the next chunks reuse ([`Self::add_reusing`]).
+    /// Chunks already added, emptied, whose lists the next chunks reuse ([`Self::add_in_order`]).
     pub spare: Vec<Contributions>,
     /// The chunks' entries sorted by part when they are added ([`scatter::scatter`]), kept for
     /// the next chunks.
@@ -235,15 +235,43 @@ impl Accumulator {
         }
     }
 
-    /// As [`Self::add`], then keeps the chunks, emptied, in [`Self::spare`].
-    pub fn add_reusing(&mut self, chunks: Vec<Contributions>) {
-        self.add(&chunks);
-        self.spare.extend(chunks.into_iter().map(|mut c| {
-            c.grad.clear();
-            c.ngrad.clear();
-            c.penalties.clear();
-            c
-        }));
+    /// Computes chunks `0..n` with `chunk` on the pool's threads, handed out in their order,
+    /// and adds each as soon as it and every chunk before it are done: the additions of
+    /// [`Self::add`] over all of them, in the same order, but only the chunks in flight are
+    /// held, so their entries are added while still in cache. `chunk` takes its lists from the
+    /// spare ones it is given ([`Contributions::reusing`]); added chunks go back there, emptied,
+    /// and stay in [`Self::spare`] for the next call. The first error stops the handing out and
+    /// is returned (the chunks added by then stay added).
+    pub fn add_in_order<E: Send>(
+        &mut self,
+        n: usize,
+        chunk: impl Fn(usize, &Mutex<Vec<Contributions>>) -> Result<Contributions, E> + Sync,
+    ) -> Result<(), E> {
+        let spare = Mutex::new(std::mem::take(&mut self.spare));
+        let next = AtomicUsize::new(0);
+        let queue = Mutex::new(InOrder {
+            acc: &mut *self,
+            added: 0,
+            pending: (0..n).map(|_| None).collect(),
+        });
+        let worker = |_| loop {
+            let k = next.fetch_add(1, Ordering::Relaxed);
+            if k >= n {
+                return Ok(());
+            }
+            match chunk(k, &spare) {
+                Ok(c) => lock(&queue).submit(k, c, &spare),
+                Err(e) => {
+                    next.store(n, Ordering::Relaxed);
+                    return Err(e);
+                }
+            }
+        };
+        let threads = rayon::current_num_threads().clamp(1, n.max(1));
+        let r = (0..threads).into_par_iter().try_for_each(worker);
+        drop(queue);
+        self.spare = spare.into_inner().unwrap_or_else(|e| e.into_inner());
+        r
     }
 
     /// Adds chunks' contributions, in their order: every vertex sees the same sequence of
@@ -251,29 +279,45 @@ impl Accumulator {
     /// the vertex range per thread).
     pub fn add(&mut self, chunks: &[Contributions]) {
         for c in chunks {
-            self.loss += c.loss;
-            self.used += c.used;
-            self.weight += c.weight;
-            self.drops.add(&c.drops);
-            self.ior += c.ior;
-        }
-        if !self.touches.is_empty() {
-            for &(v, _) in chunks.iter().flat_map(|c| &c.grad) {
-                if let Some(t) = self.touches.get_mut(v as usize) {
-                    *t += 1;
-                }
-            }
-            for &(v, x) in chunks.iter().flat_map(|c| &c.penalties) {
-                if let Some(t) = self.penalty.get_mut(v as usize) {
-                    *t += x;
-                }
-            }
+            self.add_counts(c);
         }
         let parts = rayon::current_num_threads();
         let sorted = &mut self.sorted;
         scatter::scatter(&mut self.grad, chunks, |c| &c.grad, parts, sorted);
         if !self.normal_grad.is_empty() {
             scatter::scatter(&mut self.normal_grad, chunks, |c| &c.ngrad, parts, sorted);
+        }
+    }
+
+    /// Adds one chunk's contributions on the calling thread.
+    fn add_chunk(&mut self, c: &Contributions) {
+        self.add_counts(c);
+        scatter::add_entries(&mut self.grad, 0, std::iter::once(&c.grad[..]));
+        if !self.normal_grad.is_empty() {
+            scatter::add_entries(&mut self.normal_grad, 0, std::iter::once(&c.ngrad[..]));
+        }
+    }
+
+    /// Adds a chunk's loss, counts and index derivative, and for a counting one its touches and
+    /// penalties.
+    fn add_counts(&mut self, c: &Contributions) {
+        self.loss += c.loss;
+        self.used += c.used;
+        self.weight += c.weight;
+        self.drops.add(&c.drops);
+        self.ior += c.ior;
+        if self.touches.is_empty() {
+            return;
+        }
+        for &(v, _) in &c.grad {
+            if let Some(t) = self.touches.get_mut(v as usize) {
+                *t += 1;
+            }
+        }
+        for &(v, x) in &c.penalties {
+            if let Some(t) = self.penalty.get_mut(v as usize) {
+                *t += x;
+            }
         }
     }
 
@@ -312,5 +356,146 @@ impl Accumulator {
             }
         }
         self.grad
+    }
+}
+
+/// The chunks of [`Accumulator::add_in_order`] done but not yet added, and where the adding is.
+struct InOrder<'a> {
+    acc: &'a mut Accumulator,
+    /// Chunks `0..added` are added.
+    added: usize,
+    pending: Vec<Option<Contributions>>,
+}
+
+impl InOrder<'_> {
+    /// Takes chunk `k` and adds every chunk from `added` on that is done, in order; their lists,
+    /// emptied, go to `spare`.
+    fn submit(&mut self, k: usize, c: Contributions, spare: &Mutex<Vec<Contributions>>) {
+        self.pending[k] = Some(c);
+        while let Some(mut c) = self.pending.get_mut(self.added).and_then(Option::take) {
+            self.acc.add_chunk(&c);
+            self.added += 1;
+            c.grad.clear();
+            c.ngrad.clear();
+            c.penalties.clear();
+            lock(spare).push(c);
+        }
+    }
+}
+
+/// Locks `m`, whether or not a thread panicked holding it (what it guards stays consistent:
+/// lists and sums, each updated before the next step).
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 40 chunks of entries over 30 vertices (some beyond them), with loss, counts and
+    /// penalties.
+    fn chunks() -> Vec<Contributions> {
+        (0..40u32)
+            .map(|c| {
+                let entry = |i: u32| {
+                    let v = (i * 7 + c * 13) % 33;
+                    let x = 1.0 / (1.0 + f64::from(i) + 0.37 * f64::from(c));
+                    (v, V3::new(x, -x * 1e-9, x * 1e9))
+                };
+                Contributions {
+                    loss: f64::from(c).sqrt(),
+                    used: c as usize,
+                    weight: 0.1 * f64::from(c),
+                    ior: 1.0 / (1.0 + f64::from(c)),
+                    grad: (0..25).map(entry).collect(),
+                    ngrad: (3..20).map(entry).collect(),
+                    penalties: (0..25).map(|i| (entry(i).0, entry(i).1.x)).collect(),
+                    ..Contributions::default()
+                }
+            })
+            .collect()
+    }
+
+    fn bits(a: &Accumulator) -> Vec<u64> {
+        let vectors = a.grad.iter().chain(&a.normal_grad);
+        let scalars = [a.loss, a.weight, a.ior]
+            .into_iter()
+            .chain(a.penalty.clone());
+        vectors
+            .flat_map(|x| x.iter().copied().collect::<Vec<_>>())
+            .chain(scalars)
+            .map(f64::to_bits)
+            .collect()
+    }
+
+    /// Chunks added as they are done, on 1 to 4 threads, over two calls: the same bits as
+    /// adding them all at once, and the spare lists kept.
+    #[test]
+    fn adding_in_order_matches_adding_all_at_once() {
+        let chunks = chunks();
+        let mut all = Accumulator::counting(30, true);
+        all.add(&chunks);
+        for threads in 1..=4 {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut acc = Accumulator::counting(30, true);
+            for half in chunks.chunks(20) {
+                let r: Result<(), ()> = pool.install(|| {
+                    acc.add_in_order(half.len(), |k, spare| {
+                        let mut c = Contributions::reusing(spare, 0, 0);
+                        c.grad.extend_from_slice(&half[k].grad);
+                        c.ngrad.extend_from_slice(&half[k].ngrad);
+                        c.penalties.extend_from_slice(&half[k].penalties);
+                        let (loss, used, weight, ior) =
+                            (half[k].loss, half[k].used, half[k].weight, half[k].ior);
+                        Ok(Contributions {
+                            loss,
+                            used,
+                            weight,
+                            ior,
+                            ..c
+                        })
+                    })
+                });
+                r.unwrap();
+            }
+            assert_eq!(bits(&acc), bits(&all), "{threads} threads");
+            assert_eq!(
+                (acc.used, acc.touches.clone()),
+                (all.used, all.touches.clone())
+            );
+            assert!(!acc.spare.is_empty() && acc.spare.iter().all(|c| c.grad.is_empty()));
+        }
+    }
+
+    /// A chunk's error is returned, on any number of threads; on one, no chunk after it is
+    /// computed.
+    #[test]
+    fn adding_in_order_stops_at_an_error() {
+        for threads in 1..=3 {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let computed = AtomicUsize::new(0);
+            let mut acc = Accumulator::new(5, false);
+            let r = pool.install(|| {
+                acc.add_in_order(1000, |k, _| {
+                    computed.fetch_add(1, Ordering::Relaxed);
+                    if k == 3 {
+                        Err(k)
+                    } else {
+                        Ok(Contributions::default())
+                    }
+                })
+            });
+            assert_eq!(r, Err(3), "{threads} threads");
+            if threads == 1 {
+                assert_eq!(computed.into_inner(), 4);
+            }
+        }
     }
 }

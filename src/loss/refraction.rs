@@ -727,23 +727,15 @@ pub fn add_view(
     };
     let offsets = view_offsets(s, view);
     // Trace and differentiate chunk by chunk (about TRACE_CHUNK rays), each on one thread, so
-    // the chunk's paths stay in cache between the two; then sum the chunks in order.
+    // the chunk's paths stay in cache between the two, and its entries until they are added.
     let counting = !acc.penalty.is_empty();
-    let spare = Mutex::new(std::mem::take(&mut acc.spare));
-    let chunks: Vec<Contributions> = view
-        .pixels
-        .par_chunks(pixels_per_chunk(&offsets))
-        .map(|chunk| {
-            ChunkBuffers::with(|buffers| {
-                let pixels = (chunk, offsets.as_slice());
-                let out = (counting, &spare);
-                chunk_contributions(surface, &mesh, s, view, pixels, out, buffers)
-            })
+    let chunks: Vec<&[PixelTarget]> = view.pixels.chunks(pixels_per_chunk(&offsets)).collect();
+    acc.add_in_order(chunks.len(), |k, spare| {
+        ChunkBuffers::with(|buffers| {
+            let pixels = (chunks[k], offsets.as_slice());
+            chunk_contributions(surface, &mesh, s, view, pixels, (counting, spare), buffers)
         })
-        .collect::<Result<_, TraceError>>()?;
-    acc.spare = spare.into_inner().unwrap_or_default();
-    acc.add_reusing(chunks);
-    Ok(())
+    })
 }
 
 /// The forward pass of [`add_view`] alone: the view's rays traced through `surface` as the term

@@ -39,7 +39,7 @@ pub fn scatter<C: Sync>(
             .par_chunks_mut(block)
             .enumerate()
             .for_each(|(p, part)| {
-                add_part(part, p * block, chunks.iter().map(&entries));
+                add_entries(part, p * block, chunks.iter().map(&entries));
             });
         return;
     }
@@ -59,7 +59,7 @@ pub fn scatter<C: Sync>(
             let own = sorted
                 .iter()
                 .map(|s| &s.entries[s.starts[p]..s.starts[p + 1]]);
-            add_part(part, p * block, own);
+            add_entries(part, p * block, own);
         });
 }
 
@@ -86,7 +86,7 @@ fn sort_by_part(entries: &[(u32, V3)], block: usize, parts: usize, out: &mut Par
 }
 
 /// Adds the entries of `lists`, in order, that fall in `part` (vertices from `lo`).
-fn add_part<'a>(part: &mut [V3], lo: usize, lists: impl Iterator<Item = &'a [(u32, V3)]>) {
+pub fn add_entries<'a>(part: &mut [V3], lo: usize, lists: impl Iterator<Item = &'a [(u32, V3)]>) {
     for list in lists {
         for &(v, x) in list {
             if let Some(t) = (v as usize).checked_sub(lo).and_then(|i| part.get_mut(i)) {
