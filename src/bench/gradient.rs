@@ -16,7 +16,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::loss::refraction::{add_view, trace_view, RefractionSettings, ViewTargets};
+use crate::loss::refraction::{add_view, trace_view, MeshState, RefractionSettings, ViewTargets};
 use crate::loss::{Accumulator, Drops};
 use crate::mesh::TriMesh;
 use crate::trace::path::{MeshSurface, NormalModel, Surface, SurfaceHit};
@@ -103,10 +103,13 @@ pub fn run(
 ) -> Result<GradientBenchReport, TraceError> {
     let surface = MeshSurface::with_mode(mesh, s.normals, BuildMode::Refit)?;
     let normals = (s.normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
+    // Both passes compute the mesh's face planes once per evaluation, as the optimisation does
+    // once per iteration.
     let evaluate = |surface: &dyn Surface| -> Result<Accumulator, TraceError> {
+        let state = MeshState::new(mesh, normals.as_deref());
         let mut acc = Accumulator::new(mesh.positions.len(), normals.is_some());
         for v in views {
-            add_view(surface, mesh, normals.as_deref(), s, v, &mut acc)?;
+            add_view(surface, &state, s, v, &mut acc)?;
         }
         Ok(acc)
     };
@@ -120,9 +123,10 @@ pub fn run(
     let batches = recording.batches.into_inner().expect("not poisoned");
     let queries: usize = batches.iter().map(|(b, _)| b.len()).sum();
     let trace = || -> Result<usize, TraceError> {
+        let state = MeshState::new(mesh, normals.as_deref());
         views
             .iter()
-            .map(|v| trace_view(&surface, mesh, normals.as_deref(), s, v))
+            .map(|v| trace_view(&surface, &state, s, v))
             .sum()
     };
     let (mut t_full, mut t_trace, mut t_raw) = (Vec::new(), Vec::new(), Vec::new());

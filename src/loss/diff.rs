@@ -46,16 +46,27 @@ pub struct PlaneHit {
 /// The ray–plane hit; `None` when the ray runs parallel to the plane.
 #[inline]
 pub fn plane_hit(o: &Point3<f64>, d: &V3, tri: &[Point3<f64>; 3]) -> Option<PlaneHit> {
-    let n = (tri[1] - tri[0]).cross(&(tri[2] - tri[0]));
-    let den = d.dot(&n);
+    plane_hit_on(o, d, &tri[0], &face_cross(tri))
+}
+
+/// The unnormalised normal (b − a) × (c − a) of a triangle (a, b, c).
+#[inline]
+pub fn face_cross(tri: &[Point3<f64>; 3]) -> V3 {
+    (tri[1] - tri[0]).cross(&(tri[2] - tri[0]))
+}
+
+/// [`plane_hit`] on the plane through `a` with the unnormalised normal `n` of its triangle.
+#[inline]
+pub fn plane_hit_on(o: &Point3<f64>, d: &V3, a: &Point3<f64>, n: &V3) -> Option<PlaneHit> {
+    let den = d.dot(n);
     if den == 0.0 || !den.is_finite() {
         return None;
     }
-    let t = (tri[0] - o).dot(&n) / den;
+    let t = (a - o).dot(n) / den;
     Some(PlaneHit {
         t,
         point: o + d * t,
-        n,
+        n: *n,
         den,
     })
 }

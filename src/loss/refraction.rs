@@ -19,8 +19,8 @@ use serde::{Deserialize, Serialize};
 
 use super::bits::{self, PixelBits};
 use super::diff::{
-    barycentric, barycentric_adjoint, normalize_adjoint, plane_hit, plane_hit_adjoint, snell,
-    snell_adjoint, snell_eta_adjoint, PlaneHit, Snell, SnellFailure,
+    barycentric, barycentric_adjoint, face_cross, normalize_adjoint, plane_hit_adjoint,
+    plane_hit_on, snell, snell_adjoint, snell_eta_adjoint, PlaneHit, Snell, SnellFailure,
 };
 use super::{Accumulator, Contributions, Drops, Robust};
 use crate::mesh::TriMesh;
@@ -244,6 +244,49 @@ pub struct MeshState<'a> {
     pub faces: &'a [[u32; 3]],
     /// Unit vertex normals (vertex-normal model only).
     pub vertex_normals: Option<&'a [V3]>,
+    /// Per face, its plane, computed once for all the rays that meet it.
+    planes: Vec<FacePlane>,
+}
+
+impl<'a> MeshState<'a> {
+    /// The state of `mesh` (world frame, mm), with its unit `vertex_normals` for the
+    /// vertex-normal model.
+    pub fn new(mesh: &'a TriMesh, vertex_normals: Option<&'a [V3]>) -> Self {
+        let planes = mesh
+            .faces
+            .par_iter()
+            .map(|f| FacePlane::of(&f.map(|v| mesh.positions[v as usize])))
+            .collect();
+        Self {
+            positions: &mesh.positions,
+            faces: &mesh.faces,
+            vertex_normals,
+            planes,
+        }
+    }
+}
+
+/// A triangle's plane in f64: its first corner (mm), its unnormalised normal (b − a) × (c − a),
+/// that normal's length and the unit normal (outward for a mesh wound outward).
+#[derive(Clone, Copy, Debug)]
+struct FacePlane {
+    a: Point3<f64>,
+    n: V3,
+    n_len: f64,
+    unit: V3,
+}
+
+impl FacePlane {
+    fn of(tri: &[Point3<f64>; 3]) -> Self {
+        let n = face_cross(tri);
+        let n_len = n.norm();
+        Self {
+            a: tri[0],
+            n,
+            n_len,
+            unit: n / n_len,
+        }
+    }
 }
 
 /// Recomputes pixel `px`'s path along `prims` and returns its loss and gradient.
@@ -528,7 +571,11 @@ fn trace_forward(
             match step {
                 Err(r) => paths[i] = Err(r),
                 Ok(it) => {
-                    let normal = it.hit.n / it.n_len;
+                    // The geometric normal; with face normals, `it.n` is it, up to its sign.
+                    let normal = match mesh.vertex_normals {
+                        None => it.n,
+                        Some(_) => it.hit.n / it.n_len,
+                    };
                     f.pass(it, interfaces);
                     next_batch.push(Ray::new(restart_origin(&f.o, &f.d, &normal, offset), f.d));
                     active[kept] = i;
@@ -566,8 +613,8 @@ fn refract_at(
     prim: u32,
 ) -> Result<Interface, DropReason> {
     let verts = mesh.faces[prim as usize];
-    let tri = verts.map(|v| mesh.positions[v as usize]);
-    let hit = plane_hit(o, d, &tri).ok_or(DropReason::Grazing)?;
+    let plane = &mesh.planes[prim as usize];
+    let hit = plane_hit_on(o, d, &plane.a, &plane.n).ok_or(DropReason::Grazing)?;
     let entering = hit.den < 0.0;
     let (eta, sign) = if entering {
         (s.ior_air / s.ior, 1.0)
@@ -575,11 +622,12 @@ fn refract_at(
         (s.ior / s.ior_air, -1.0)
     };
     let deta_dior = -sign * eta / s.ior;
-    let n_len = hit.n.norm();
+    let n_len = plane.n_len;
     let (mut bary, mut interp_norm) = ((0.0, 0.0), 0.0);
     let outward = match mesh.vertex_normals {
-        None => hit.n / n_len,
+        None => plane.unit,
         Some(vn) => {
+            let tri = verts.map(|v| mesh.positions[v as usize]);
             bary = barycentric(&hit.point, &tri, &hit.n);
             let vnormals = verts.map(|v| vn[v as usize]);
             let m =
@@ -672,20 +720,24 @@ fn interface_adjoint(
     let (mut gdin, mut gn) = (V3::zeros(), V3::zeros());
     snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
     out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, &gout) * it.deta_dior;
-    let g_outward = if it.entering { gn } else { -gn };
+    // The unit normal, outward: the face's or the interpolated one.
+    let (outward, g_outward) = if it.entering {
+        (it.n, gn)
+    } else {
+        (-it.n, -gn)
+    };
     let tri = it.verts.map(|v| mesh.positions[v as usize]);
     let mut gtri = [V3::zeros(); 3];
     let mut gnormal = V3::zeros();
     let mut gpoint = *gp;
     match mesh.vertex_normals {
         None => {
-            gnormal += normalize_adjoint(&(it.hit.n / it.n_len), it.n_len, &g_outward);
+            gnormal += normalize_adjoint(&outward, it.n_len, &g_outward);
         }
         Some(vn) => {
             let (w1, w2) = it.bary;
             let w = [1.0 - w1 - w2, w1, w2];
-            let m_unit = if it.entering { it.n } else { -it.n };
-            let gm = normalize_adjoint(&m_unit, it.interp_norm, &g_outward);
+            let gm = normalize_adjoint(&outward, it.interp_norm, &g_outward);
             out.ngrad
                 .extend(it.verts.iter().zip(w).map(|(&v, wk)| (v, gm * wk)));
             let gw = it.verts.map(|v| gm.dot(&vn[v as usize]));
@@ -714,17 +766,11 @@ fn interface_adjoint(
 /// one, each compared pixel's penalty at the vertices it touches: [`Contributions::penalties`]).
 pub fn add_view(
     surface: &dyn Surface,
-    mesh: &TriMesh,
-    vertex_normals: Option<&[V3]>,
+    mesh: &MeshState,
     s: &RefractionSettings,
     view: &ViewTargets,
     acc: &mut Accumulator,
 ) -> Result<(), TraceError> {
-    let mesh = MeshState {
-        positions: &mesh.positions,
-        faces: &mesh.faces,
-        vertex_normals,
-    };
     let offsets = view_offsets(s, view);
     // Trace and differentiate chunk by chunk (about TRACE_CHUNK rays), each on one thread, so
     // the chunk's paths stay in cache between the two, and its entries until they are added.
@@ -733,7 +779,7 @@ pub fn add_view(
     acc.add_in_order(chunks.len(), |k, spare| {
         ChunkBuffers::with(|buffers| {
             let pixels = (chunks[k], offsets.as_slice());
-            chunk_contributions(surface, &mesh, s, view, pixels, (counting, spare), buffers)
+            chunk_contributions(surface, mesh, s, view, pixels, (counting, spare), buffers)
         })
     })
 }
@@ -744,22 +790,16 @@ pub fn add_view(
 /// `bench gradient`.
 pub fn trace_view(
     surface: &dyn Surface,
-    mesh: &TriMesh,
-    vertex_normals: Option<&[V3]>,
+    mesh: &MeshState,
     s: &RefractionSettings,
     view: &ViewTargets,
 ) -> Result<usize, TraceError> {
-    let mesh = MeshState {
-        positions: &mesh.positions,
-        faces: &mesh.faces,
-        vertex_normals,
-    };
     let offsets = view_offsets(s, view);
     view.pixels
         .par_chunks(pixels_per_chunk(&offsets))
         .map(|chunk| {
             ChunkBuffers::with(|b| {
-                trace_chunk_forward(surface, &mesh, s, view, (chunk, &offsets), b)?;
+                trace_chunk_forward(surface, mesh, s, view, (chunk, &offsets), b)?;
                 Ok(b.paths.iter().filter(|p| p.is_ok()).count())
             })
         })
@@ -871,7 +911,10 @@ fn trace_chunk_forward(
     let per_pixel = offsets.len();
     footprint_dirs(view, pixels, offsets, &mut b.dirs);
     b.interfaces.clear();
-    let min_cos = |i: usize| pixels[i / per_pixel].min_cos(s);
+    let min_cos = |i: usize| match per_pixel {
+        1 => pixels[i].min_cos(s),
+        n => pixels[i / n].min_cos(s),
+    };
     let trace = (&mut b.trace, &mut b.paths, &mut b.interfaces);
     trace_forward(surface, mesh, s, (&view.eye, &b.dirs), min_cos, trace)
 }

@@ -5,7 +5,7 @@ use super::config::Settings;
 use super::coverage::Coverage;
 use super::validation::Split;
 use crate::loss::membrane::{add_membrane, along_normals};
-use crate::loss::refraction::{add_view, RefractionSettings};
+use crate::loss::refraction::{add_view, MeshState, RefractionSettings};
 use crate::loss::silhouette::{self, ContourMesh, SilhouetteSettings};
 use crate::loss::smoothness::add_smoothness;
 use crate::loss::{Accumulator, Drops};
@@ -248,16 +248,16 @@ pub(super) fn add_refraction(
         (nalgebra::center(&lo, &hi), (hi - lo).norm())
     });
     let spacing_mm = iteration_spacing_mm(mesh, diagonal, settings);
-    let vn = surface.vertex_normals();
+    let state = MeshState::new(mesh, surface.vertex_normals());
     for &(v, sample) in views {
         let view = &inputs.targets[v];
         match sample {
             Sample::Offset(offset) => {
                 // The share of the kept pixels (themselves a share of the decoded ones).
                 let share = view.share_for_spacing(&centre, spacing_mm) / inputs.kept_shares[v];
-                add_view(surface, mesh, vn, &rs, &view.sampled(share, offset), acc)?;
+                add_view(surface, &state, &rs, &view.sampled(share, offset), acc)?;
             }
-            Sample::AllKept => add_view(surface, mesh, vn, &rs, view, acc)?,
+            Sample::AllKept => add_view(surface, &state, &rs, view, acc)?,
         }
     }
     Ok(())

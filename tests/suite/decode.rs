@@ -691,7 +691,7 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
     // through one 1 % larger (0.2–0.3 mm) they fit far worse, though there the term drops the
     // pixels whose footprint left its cell. Wrong conventions (bit order, sign,
     // the pixel-centre offset) would fit the truth no better than anything else.
-    use glasscan::loss::refraction::add_view;
+    use glasscan::loss::refraction::{add_view, MeshState};
     use glasscan::loss::{targets::scan_targets, Accumulator};
     use glasscan::mesh::TriMesh;
     use glasscan::trace::path::{MeshSurface, NormalModel};
@@ -721,8 +721,9 @@ fn measured_bit_contrasts_fit_the_true_shape_better_than_a_grown_one() {
         let normals = mesh.vertex_normals();
         let run = |w| {
             let mut acc = Accumulator::new(mesh.positions.len(), true);
+            let state = MeshState::new(mesh, Some(&normals));
             for v in &views {
-                add_view(&surface, mesh, Some(&normals), &settings(w), v, &mut acc).unwrap();
+                add_view(&surface, &state, &settings(w), v, &mut acc).unwrap();
             }
             (acc.loss, acc.used)
         };
@@ -839,7 +840,7 @@ fn outward_slope(
     rule: bool,
     normals: NormalModel,
 ) -> (f64, usize) {
-    use glasscan::loss::refraction::add_view;
+    use glasscan::loss::refraction::{add_view, MeshState};
     use glasscan::loss::{targets::scan_targets, Accumulator};
     use glasscan::trace::path::MeshSurface;
     if !scan_dir.join("decoded").exists() {
@@ -862,9 +863,9 @@ fn outward_slope(
         ..presets
     };
     let mut acc = Accumulator::new(truth.positions.len(), smooth);
+    let state = MeshState::new(&truth, smooth.then_some(&vertex_normals[..]));
     for v in &views {
-        let vn = smooth.then_some(&vertex_normals[..]);
-        add_view(&surface, &truth, vn, &s, v, &mut acc).unwrap();
+        add_view(&surface, &state, &s, v, &mut acc).unwrap();
     }
     let used = acc.used;
     let grad = acc.finish(&truth);

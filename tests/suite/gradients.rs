@@ -166,11 +166,7 @@ fn case(
 }
 
 fn state<'a>(mesh: &'a TriMesh, normals: &'a Option<Vec<V3>>) -> MeshState<'a> {
-    MeshState {
-        positions: &mesh.positions,
-        faces: &mesh.faces,
-        vertex_normals: normals.as_deref(),
-    }
+    MeshState::new(mesh, normals.as_deref())
 }
 
 /// The pixel's loss and gradient on `mesh` from its rays.
@@ -1078,8 +1074,9 @@ fn evaluate_views(
 ) -> (f64, usize, glasscan::loss::Drops, f64) {
     let vn = (s.normals == NormalModel::Vertex).then(|| surface.mesh().vertex_normals());
     let mut acc = Accumulator::new(surface.mesh().positions.len(), vn.is_some());
+    let state = MeshState::new(surface.mesh(), vn.as_deref());
     for v in views {
-        add_view(surface, surface.mesh(), vn.as_deref(), s, v, &mut acc).unwrap();
+        add_view(surface, &state, s, v, &mut acc).unwrap();
     }
     let (loss, used, drops) = (acc.loss, acc.used, acc.drops);
     let g = acc.finish(surface.mesh());
@@ -1105,8 +1102,9 @@ fn term_and_index_slope(
     };
     let vn = surface.mesh().vertex_normals();
     let mut acc = Accumulator::new(surface.mesh().positions.len(), true);
+    let state = MeshState::new(surface.mesh(), Some(&vn));
     for v in views {
-        add_view(surface, surface.mesh(), Some(&vn), &s, v, &mut acc).unwrap();
+        add_view(surface, &state, &s, v, &mut acc).unwrap();
     }
     let (loss, used, ior) = (acc.loss, acc.used, acc.ior);
     (loss, used, ior, acc.finish(surface.mesh()))
@@ -1194,8 +1192,9 @@ fn the_term_traces_the_paths_the_path_tracer_finds() {
         };
         let vn = (normals == NormalModel::Vertex).then(|| mesh.vertex_normals());
         let mut acc = Accumulator::new(mesh.positions.len(), vn.is_some());
+        let state = MeshState::new(&mesh, vn.as_deref());
         for v in &views {
-            add_view(&surface, &mesh, vn.as_deref(), &s, v, &mut acc).unwrap();
+            add_view(&surface, &state, &s, v, &mut acc).unwrap();
         }
         let (loss, used) = (acc.loss, acc.used);
         let grad = acc.finish(&mesh);
@@ -1211,7 +1210,7 @@ fn the_term_traces_the_paths_the_path_tracer_finds() {
                 if !compared || path.refractions == 0 {
                     continue;
                 }
-                if let Ok(g) = pixel_gradient(&state(&mesh, &vn), &s, v, px, trail.prims()) {
+                if let Ok(g) = pixel_gradient(&state, &s, v, px, trail.prims()) {
                     loss_apart += g.loss;
                     used_apart += 1;
                     apart.push_pixel(&g, px.weight);
@@ -1360,7 +1359,8 @@ fn gradients_are_bitwise_the_same_on_any_number_of_threads() {
                 );
                 let vn = mesh.vertex_normals();
                 let mut acc = Accumulator::new(mesh.positions.len(), true);
-                add_view(&surface, &mesh, Some(&vn), &s, &view, &mut acc).unwrap();
+                let state = MeshState::new(&mesh, Some(&vn));
+                add_view(&surface, &state, &s, &view, &mut acc).unwrap();
                 add_smoothness(
                     &mesh,
                     &mesh.interior_edges(),
@@ -1406,8 +1406,9 @@ fn the_ray_sample_is_unbiased_its_mean_gradient_is_the_full_views() {
     let vn = mesh.vertex_normals();
     let sums = |views: &[ViewTargets]| {
         let mut acc = Accumulator::new(mesh.positions.len(), true);
+        let state = MeshState::new(&mesh, Some(&vn));
         for v in views {
-            add_view(&surface, &mesh, Some(&vn), &s, v, &mut acc).unwrap();
+            add_view(&surface, &state, &s, v, &mut acc).unwrap();
         }
         (acc.loss, acc.finish(&mesh))
     };
