@@ -308,6 +308,7 @@ fn run_gradient(a: &GradientArgs) -> Result<()> {
         grazing_cell_footprints: 0.0,
         footprint: a.footprint,
         bit_weight: 0.0,
+        index_gradient: false,
     };
     eprintln!(
         "bench gradient: {} ({} faces), {} views of {} ({} left out by decode), targets loaded in {load_s:.1} s",

@@ -249,18 +249,22 @@ impl Accumulator {
     ) -> Result<(), E> {
         let spare = Mutex::new(std::mem::take(&mut self.spare));
         let next = AtomicUsize::new(0);
-        let queue = Mutex::new(InOrder {
-            acc: &mut *self,
-            added: 0,
-            pending: (0..n).map(|_| None).collect(),
-        });
+        let order = InOrder {
+            adder: Mutex::new(Adder {
+                acc: &mut *self,
+                added: 0,
+                pending: (0..n).map(|_| None).collect(),
+            }),
+            inbox: Mutex::new(Vec::new()),
+            spare: &spare,
+        };
         let worker = |_| loop {
             let k = next.fetch_add(1, Ordering::Relaxed);
             if k >= n {
                 return Ok(());
             }
             match chunk(k, &spare) {
-                Ok(c) => lock(&queue).submit(k, c, &spare),
+                Ok(c) => order.submit(k, c),
                 Err(e) => {
                     next.store(n, Ordering::Relaxed);
                     return Err(e);
@@ -269,7 +273,11 @@ impl Accumulator {
         };
         let threads = rayon::current_num_threads().clamp(1, n.max(1));
         let r = (0..threads).into_par_iter().try_for_each(worker);
-        drop(queue);
+        // Every chunk is added by now (see `InOrder::submit`); the inbox is looked at once more
+        // all the same.
+        let rest = std::mem::take(&mut *lock(&order.inbox));
+        lock(&order.adder).take(rest, &spare);
+        drop(order);
         self.spare = spare.into_inner().unwrap_or_else(|e| e.into_inner());
         r
     }
@@ -359,19 +367,57 @@ impl Accumulator {
     }
 }
 
-/// The chunks of [`Accumulator::add_in_order`] done but not yet added, and where the adding is.
-struct InOrder<'a> {
+/// Where the chunks of [`Accumulator::add_in_order`] go when they are done: a thread that
+/// finishes one leaves it in the inbox and adds what is ready unless another thread is adding
+/// (then that one adds it), so no thread waits while another adds.
+struct InOrder<'a, 'b> {
+    adder: Mutex<Adder<'a>>,
+    inbox: Mutex<Vec<(usize, Contributions)>>,
+    spare: &'b Mutex<Vec<Contributions>>,
+}
+
+impl InOrder<'_, '_> {
+    /// Leaves chunk `k` in the inbox, then, while the inbox holds chunks and no other thread
+    /// is adding, adds what is ready. (A thread that finds the adder busy leaves; the adder,
+    /// once free, looks at the inbox again, so no chunk is left behind.)
+    fn submit(&self, k: usize, c: Contributions) {
+        lock(&self.inbox).push((k, c));
+        loop {
+            let mut adder = match self.adder.try_lock() {
+                Ok(a) => a,
+                Err(std::sync::TryLockError::Poisoned(e)) => e.into_inner(),
+                Err(std::sync::TryLockError::WouldBlock) => return,
+            };
+            loop {
+                let done = std::mem::take(&mut *lock(&self.inbox));
+                if done.is_empty() {
+                    break;
+                }
+                adder.take(done, self.spare);
+            }
+            drop(adder);
+            if lock(&self.inbox).is_empty() {
+                return;
+            }
+        }
+    }
+}
+
+/// The adding side of [`InOrder`]: the accumulator and the chunks done out of order.
+struct Adder<'a> {
     acc: &'a mut Accumulator,
     /// Chunks `0..added` are added.
     added: usize,
     pending: Vec<Option<Contributions>>,
 }
 
-impl InOrder<'_> {
-    /// Takes chunk `k` and adds every chunk from `added` on that is done, in order; their lists,
-    /// emptied, go to `spare`.
-    fn submit(&mut self, k: usize, c: Contributions, spare: &Mutex<Vec<Contributions>>) {
-        self.pending[k] = Some(c);
+impl Adder<'_> {
+    /// Takes the chunks `done` (index, chunk) and adds every chunk from `added` on that is
+    /// done, in order; their lists, emptied, go to `spare`.
+    fn take(&mut self, done: Vec<(usize, Contributions)>, spare: &Mutex<Vec<Contributions>>) {
+        for (k, c) in done {
+            self.pending[k] = Some(c);
+        }
         while let Some(mut c) = self.pending.get_mut(self.added).and_then(Option::take) {
             self.acc.add_chunk(&c);
             self.added += 1;

@@ -75,6 +75,10 @@ pub struct RefractionSettings {
     /// per pixel relative to the residual's robust penalty; 0: off.
     #[serde(default)]
     pub bit_weight: f64,
+    /// Whether the derivative with respect to the object's index is computed (a run that
+    /// estimates the index); otherwise [`PixelGradient::ior`] and the sums' stay 0.
+    #[serde(default)]
+    pub index_gradient: bool,
 }
 
 /// The most rays per pixel side of a footprint.
@@ -202,6 +206,7 @@ struct Interface {
     interp_norm: f64,
     /// Unit normal facing the incident side.
     n: V3,
+    /// Snell's law here, its `out` normalised: the outgoing ray's unit direction.
     snell: Snell,
     /// |snell.out| before normalisation.
     out_norm: f64,
@@ -380,7 +385,8 @@ fn pixel_from_paths(
             gd += bd;
         }
         for &i in f.chain.iter().rev() {
-            (gp, gd) = interface_adjoint(mesh, &interfaces[i as usize], &gp, &gd, out);
+            let model = (mesh, s.index_gradient);
+            (gp, gd) = interface_adjoint(model, &interfaces[i as usize], &gp, &gd, out);
         }
     }
     let finite = (loss + bit_loss).is_finite()
@@ -502,7 +508,7 @@ fn forward(
 impl Forward {
     /// Continues the path through interface `it`, appended to `interfaces`.
     fn pass(&mut self, it: Interface, interfaces: &mut Vec<Interface>) {
-        (self.o, self.d) = (it.hit.point, it.snell.out / it.out_norm);
+        (self.o, self.d) = (it.hit.point, it.snell.out);
         self.chain.push(interfaces.len() as u32);
         interfaces.push(it);
     }
@@ -637,7 +643,7 @@ fn refract_at(
         }
     };
     let n = outward * sign;
-    let sn = snell(d, &n, eta).map_err(|e| match e {
+    let mut sn = snell(d, &n, eta).map_err(|e| match e {
         SnellFailure::Grazing => DropReason::Grazing,
         SnellFailure::Total => DropReason::TotalInternalReflection,
         SnellFailure::Critical => DropReason::NearCritical,
@@ -648,6 +654,8 @@ fn refract_at(
     if sn.cos_t < min_cos {
         return Err(DropReason::NearCritical);
     }
+    let out_norm = sn.out.norm();
+    sn.out /= out_norm;
     Ok(Interface {
         verts,
         dir_in: *d,
@@ -657,7 +665,7 @@ fn refract_at(
         bary,
         interp_norm,
         n,
-        out_norm: sn.out.norm(),
+        out_norm,
         snell: sn,
         deta_dior,
     })
@@ -706,20 +714,22 @@ fn exit_adjoint(s: &RefractionSettings, view: &ViewTargets, e: &Exit, d: &V3, gr
 
 /// Backward through one interface: from the gradients with respect to the outgoing ray (its
 /// origin `gp`, the hit point, and its direction `gd`) to the triangle's vertices (and, with
-/// vertex normals, the normals), added to `out`; returns the gradients with respect to the
-/// incoming ray's origin and direction.
+/// vertex normals, the normals), added to `out` (and, if `index_gradient`, to the index); returns
+/// the gradients with respect to the incoming ray's origin and direction.
 fn interface_adjoint(
-    mesh: &MeshState,
+    (mesh, index_gradient): (&MeshState, bool),
     it: &Interface,
     gp: &V3,
     gd: &V3,
     out: &mut PixelGradient,
 ) -> (V3, V3) {
     // d_next = out / |out|.
-    let gout = normalize_adjoint(&(it.snell.out / it.out_norm), it.out_norm, gd);
+    let gout = normalize_adjoint(&it.snell.out, it.out_norm, gd);
     let (mut gdin, mut gn) = (V3::zeros(), V3::zeros());
     snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
-    out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, &gout) * it.deta_dior;
+    if index_gradient {
+        out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, &gout) * it.deta_dior;
+    }
     // The unit normal, outward: the face's or the interpolated one.
     let (outward, g_outward) = if it.entering {
         (it.n, gn)
@@ -757,7 +767,12 @@ fn interface_adjoint(
     plane_hit_adjoint(
         &it.hit, &it.dir_in, &tri, &gpoint, &gnormal, &mut go, &mut gdin, &mut gtri,
     );
-    out.grad.extend(it.verts.into_iter().zip(gtri));
+    // Component by component: copying each vector whole, the compiler assembled it on the
+    // stack from partial stores and read it back, a stall behind every pending store
+    // (`bench gradient`, CHANGELOG 0.27.2).
+    for (&v, g) in it.verts.iter().zip(&gtri) {
+        out.grad.push((v, V3::new(g.x, g.y, g.z)));
+    }
     (go, gdin)
 }
 

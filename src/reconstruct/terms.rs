@@ -243,6 +243,7 @@ pub(super) fn add_refraction(
         grazing_cell_footprints: settings.grazing_cell_footprints,
         footprint: settings.footprint,
         bit_weight: settings.weight_bits,
+        index_gradient: inputs.ior.is_auto(),
     };
     let (centre, diagonal) = mesh.bbox().map_or((Point3::origin(), 0.0), |(lo, hi)| {
         (nalgebra::center(&lo, &hi), (hi - lo).norm())

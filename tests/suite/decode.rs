@@ -900,6 +900,7 @@ fn refraction_settings(
         .grazing_cell_footprints,
         footprint,
         bit_weight,
+        index_gradient: false,
     }
 }
 

@@ -94,6 +94,7 @@ fn settings(
         grazing_cell_footprints: 0.0,
         footprint: 1,
         bit_weight: 0.0,
+        index_gradient: true,
     }
 }
 
@@ -219,20 +220,31 @@ fn fd_check(c: &Case, h: f64, label: &str) {
     ior_fd_check(c, (10.0 * h).min(1e-5), label);
 }
 
-/// ∂L/∂(refractive index) against five-point central differences of the index (step `h`).
+/// ∂L/∂(refractive index) against five-point central differences of the index (step `h`); and
+/// without it (`index_gradient` off), none, and the same loss and position gradient.
 fn ior_fd_check(c: &Case, h: f64, label: &str) {
-    let g = gradient(c, &c.mesh).unwrap().ior;
-    let at = |ior: f64| {
-        let k = Case {
-            s: RefractionSettings { ior, ..c.s },
-            view: c.view.clone(),
-            px: c.px,
-            rays: c.rays.clone(),
-            landing: c.landing,
-            mesh: c.mesh.clone(),
-        };
-        loss(&k, &c.mesh).unwrap()
+    let with = |s: RefractionSettings| Case {
+        s,
+        view: c.view.clone(),
+        px: c.px,
+        rays: c.rays.clone(),
+        landing: c.landing,
+        mesh: c.mesh.clone(),
     };
+    let full = gradient(c, &c.mesh).unwrap();
+    let off = with(RefractionSettings {
+        index_gradient: false,
+        ..c.s
+    });
+    let without = gradient(&off, &c.mesh).unwrap();
+    assert_eq!(without.ior, 0.0, "{label}");
+    assert_eq!(
+        (without.loss, &without.grad, &without.ngrad),
+        (full.loss, &full.grad, &full.ngrad),
+        "{label}"
+    );
+    let g = full.ior;
+    let at = |ior: f64| loss(&with(RefractionSettings { ior, ..c.s }), &c.mesh).unwrap();
     let n = c.s.ior;
     let fd = (8.0 * (at(n + h) - at(n - h)) - (at(n + 2.0 * h) - at(n - 2.0 * h))) / (12.0 * h);
     assert!(g.abs() > 0.0 && g.is_finite(), "{label}: ∂L/∂ior = {g}");
