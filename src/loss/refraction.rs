@@ -75,8 +75,9 @@ pub struct RefractionSettings {
     /// per pixel relative to the residual's robust penalty; 0: off.
     #[serde(default)]
     pub bit_weight: f64,
-    /// Whether the derivative with respect to the object's index is computed (a run that
-    /// estimates the index); otherwise [`PixelGradient::ior`] and the sums' stay 0.
+    /// Whether the derivative with respect to the object's index is computed (to step a free
+    /// index, or to find the index the held-out views fit best); otherwise
+    /// [`PixelGradient::ior`] and the sums' stay 0.
     #[serde(default)]
     pub index_gradient: bool,
 }

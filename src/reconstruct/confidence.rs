@@ -14,7 +14,7 @@ use anyhow::Result;
 use serde::Serialize;
 
 use super::config::Settings;
-use super::terms::{add_refraction, add_silhouettes, Sample};
+use super::terms::{add_refraction, add_silhouettes, IndexSlope, Sample};
 use super::Inputs;
 use crate::loss::Accumulator;
 use crate::trace::path::MeshSurface;
@@ -145,6 +145,7 @@ pub fn measure(
         mesh,
         settings,
         &views,
+        IndexSlope::Unneeded,
         &mut refraction,
     )?;
     let mut silhouette = Accumulator::counting(n, false);

@@ -20,7 +20,7 @@ use serde::Serialize;
 
 use super::checkpoint::StageReport;
 use super::config::{Settings, AUTO_FOOTPRINT};
-use super::terms::{refraction_over, Sample};
+use super::terms::{refraction_over, IndexSlope, Sample};
 use super::validation::Split;
 use super::Inputs;
 use crate::mesh::TriMesh;
@@ -267,7 +267,14 @@ fn held_out(
         .iter()
         .map(|&t| (t, Sample::AllKept))
         .collect();
-    let term = refraction_over((inputs, ior), surface, mesh, settings, &views)?;
+    let term = refraction_over(
+        (inputs, ior),
+        surface,
+        mesh,
+        settings,
+        &views,
+        IndexSlope::Wanted,
+    )?;
     let w = if term.weight > 0.0 {
         1.0 / term.weight
     } else {

@@ -17,7 +17,7 @@ use anyhow::Result;
 
 use super::confidence::MIN_RAYS;
 use super::config::Settings;
-use super::terms::{add_refraction, Sample};
+use super::terms::{add_refraction, IndexSlope, Sample};
 use super::validation::Split;
 use super::Inputs;
 use crate::loss::Accumulator;
@@ -77,7 +77,16 @@ fn mean_penalties(
     let views: Vec<(usize, Sample)> = (split.fit_targets.iter().step_by(VIEW_STEP))
         .map(|&t| (t, Sample::Offset(0.5)))
         .collect();
-    add_refraction((inputs, ior), &surface, mesh, settings, &views, &mut acc)?;
+    let slope = IndexSlope::Unneeded;
+    add_refraction(
+        (inputs, ior),
+        &surface,
+        mesh,
+        settings,
+        &views,
+        slope,
+        &mut acc,
+    )?;
     Ok((acc.touches.iter().zip(&acc.penalty))
         .map(|(&n, &p)| (n >= MIN_RAYS).then(|| p / n as f64))
         .collect())

@@ -158,8 +158,21 @@ pub(super) fn iteration_terms(
     coverage: &mut Coverage,
 ) -> Result<(Terms, f64, TermTimes)> {
     let refraction_then_membrane = || -> Result<_> {
-        let (refraction, t_refraction) =
-            timed(|| refraction_over((inputs, ior), surface, mesh, settings, &draws.refraction));
+        let (refraction, t_refraction) = timed(|| {
+            let slope = if inputs.ior.is_auto() {
+                IndexSlope::Wanted
+            } else {
+                IndexSlope::Unneeded
+            };
+            refraction_over(
+                (inputs, ior),
+                surface,
+                mesh,
+                settings,
+                &draws.refraction,
+                slope,
+            )
+        });
         let refraction = refraction?;
         let (membrane, t_membrane) = timed(|| {
             coverage.record(&refraction.grad);
@@ -210,6 +223,14 @@ pub(super) enum Sample {
     AllKept,
 }
 
+/// Whether a refraction evaluation also computes its derivative with respect to the index: to
+/// step a free index, or for the held-out views' best-fitting index.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum IndexSlope {
+    Wanted,
+    Unneeded,
+}
+
 /// The refraction term at refractive index `ior` over `views` (target index, which pixels).
 pub(super) fn refraction_over(
     inputs: (&Inputs, f64),
@@ -217,9 +238,10 @@ pub(super) fn refraction_over(
     mesh: &TriMesh,
     settings: &Settings,
     views: &[(usize, Sample)],
+    slope: IndexSlope,
 ) -> Result<TermValue> {
     let mut acc = Accumulator::new(mesh.positions.len(), surface.vertex_normals().is_some());
-    add_refraction(inputs, surface, mesh, settings, views, &mut acc)?;
+    add_refraction(inputs, surface, mesh, settings, views, slope, &mut acc)?;
     Ok(TermValue::from(acc, mesh))
 }
 
@@ -230,6 +252,7 @@ pub(super) fn add_refraction(
     mesh: &TriMesh,
     settings: &Settings,
     views: &[(usize, Sample)],
+    slope: IndexSlope,
     acc: &mut Accumulator,
 ) -> Result<()> {
     let rs = RefractionSettings {
@@ -243,7 +266,7 @@ pub(super) fn add_refraction(
         grazing_cell_footprints: settings.grazing_cell_footprints,
         footprint: settings.footprint,
         bit_weight: settings.weight_bits,
-        index_gradient: inputs.ior.is_auto(),
+        index_gradient: slope == IndexSlope::Wanted,
     };
     let (centre, diagonal) = mesh.bbox().map_or((Point3::origin(), 0.0), |(lo, hi)| {
         (nalgebra::center(&lo, &hi), (hi - lo).norm())

@@ -165,7 +165,9 @@ pub fn validate_mesh(
     let mut views: BTreeMap<usize, ViewSums> = BTreeMap::new();
     for &t in &split.held_targets {
         let all = [(t, Sample::AllKept)];
-        let term = super::terms::refraction_over((inputs, ior), &surface, mesh, settings, &all)?;
+        let slope = super::terms::IndexSlope::Unneeded;
+        let term =
+            super::terms::refraction_over((inputs, ior), &surface, mesh, settings, &all, slope)?;
         let sums = &mut views.entry(inputs.targets[t].view).or_default().0;
         *sums = sums.add(Sums::of(&term));
     }
