@@ -46,13 +46,8 @@ pub struct PlaneHit {
 /// The ray–plane hit; `None` when the ray runs parallel to the plane.
 #[inline]
 pub fn plane_hit(o: &Point3<f64>, d: &V3, tri: &[Point3<f64>; 3]) -> Option<PlaneHit> {
-    plane_hit_on(o, d, &tri[0], &face_cross(tri))
-}
-
-/// The unnormalised normal (b − a) × (c − a) of a triangle (a, b, c).
-#[inline]
-pub fn face_cross(tri: &[Point3<f64>; 3]) -> V3 {
-    (tri[1] - tri[0]).cross(&(tri[2] - tri[0]))
+    let n = (tri[1] - tri[0]).cross(&(tri[2] - tri[0]));
+    plane_hit_on(o, d, &tri[0], &n)
 }
 
 /// [`plane_hit`] on the plane through `a` with the unnormalised normal `n` of its triangle.

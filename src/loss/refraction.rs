@@ -19,8 +19,8 @@ use serde::{Deserialize, Serialize};
 
 use super::bits::{self, PixelBits};
 use super::diff::{
-    barycentric, barycentric_adjoint, face_cross, normalize_adjoint, plane_hit_adjoint,
-    plane_hit_on, snell, snell_adjoint, snell_eta_adjoint, PlaneHit, Snell, SnellFailure,
+    barycentric, barycentric_adjoint, normalize_adjoint, plane_hit_adjoint, plane_hit_on, snell,
+    snell_adjoint, snell_eta_adjoint, PlaneHit, Snell, SnellFailure,
 };
 use super::{Accumulator, Contributions, Drops, Robust};
 use crate::mesh::TriMesh;
@@ -258,10 +258,9 @@ impl<'a> MeshState<'a> {
     /// The state of `mesh` (world frame, mm), with its unit `vertex_normals` for the
     /// vertex-normal model.
     pub fn new(mesh: &'a TriMesh, vertex_normals: Option<&'a [V3]>) -> Self {
-        let planes = mesh
-            .faces
-            .par_iter()
-            .map(|f| FacePlane::of(&f.map(|v| mesh.positions[v as usize])))
+        let planes = (0..mesh.faces.len())
+            .into_par_iter()
+            .map(|f| FacePlane::of(mesh, f))
             .collect();
         Self {
             positions: &mesh.positions,
@@ -283,11 +282,12 @@ struct FacePlane {
 }
 
 impl FacePlane {
-    fn of(tri: &[Point3<f64>; 3]) -> Self {
-        let n = face_cross(tri);
+    /// The plane of face `f` of `mesh`.
+    fn of(mesh: &TriMesh, f: usize) -> Self {
+        let n = mesh.face_cross(f);
         let n_len = n.norm();
         Self {
-            a: tri[0],
+            a: mesh.corners(f)[0],
             n,
             n_len,
             unit: n / n_len,
