@@ -26,6 +26,7 @@ use super::{Accumulator, Contributions, Drops, Robust};
 use crate::mesh::TriMesh;
 use crate::trace::path::{restart_origin, NormalModel, Surface, MAX_TRAIL, TRACE_CHUNK};
 use crate::trace::{Ray, TraceError};
+use crate::util::prefetch::prefetch;
 
 type V3 = Vector3<f64>;
 
@@ -211,8 +212,6 @@ struct Interface {
     snell: Snell,
     /// |snell.out| before normalisation.
     out_norm: f64,
-    /// ∂η/∂(object's index): η = n_air / n entering, n / n_air leaving.
-    deta_dior: f64,
 }
 
 /// Why a pixel was dropped from the refraction term.
@@ -267,6 +266,16 @@ impl<'a> MeshState<'a> {
             faces: &mesh.faces,
             vertex_normals,
             planes,
+        }
+    }
+
+    /// Asks for what refracting at face `f` reads (its plane and corner indices) to be brought
+    /// into the caches ([`prefetch`]).
+    fn prefetch_face(&self, f: u32) {
+        if let (Some(plane), Some(face)) = (self.planes.get(f as usize), self.faces.get(f as usize))
+        {
+            prefetch(plane);
+            prefetch(face);
         }
     }
 }
@@ -386,7 +395,7 @@ fn pixel_from_paths(
             gd += bd;
         }
         for &i in f.chain.iter().rev() {
-            let model = (mesh, s.index_gradient);
+            let model = (mesh, s.index_gradient.then_some(s.ior));
             (gp, gd) = interface_adjoint(model, &interfaces[i as usize], &gp, &gd, out);
         }
     }
@@ -564,6 +573,9 @@ fn trace_forward(
         next_batch.clear();
         let mut kept = 0;
         for (k, prim) in prims.iter().enumerate() {
+            if let Some(&Some(ahead)) = prims.get(k + PREFETCH_AHEAD) {
+                mesh.prefetch_face(ahead);
+            }
             let i = active[k];
             let Ok(f) = &mut paths[i] else {
                 unreachable!("only live paths are active")
@@ -595,6 +607,10 @@ fn trace_forward(
     }
     Ok(())
 }
+
+/// How many rays ahead of the one it refracts [`trace_forward`] asks for the hit triangle's
+/// data ([`MeshState::prefetch_face`]): enough for it to arrive from memory meanwhile.
+const PREFETCH_AHEAD: usize = 8;
 
 /// The rays [`trace_forward`] sends to Embree at each interface, and which paths they continue.
 #[derive(Default)]
@@ -628,7 +644,6 @@ fn refract_at(
     } else {
         (s.ior / s.ior_air, -1.0)
     };
-    let deta_dior = -sign * eta / s.ior;
     let n_len = plane.n_len;
     let (mut bary, mut interp_norm) = ((0.0, 0.0), 0.0);
     let outward = match mesh.vertex_normals {
@@ -668,7 +683,6 @@ fn refract_at(
         n,
         out_norm,
         snell: sn,
-        deta_dior,
     })
 }
 
@@ -715,10 +729,11 @@ fn exit_adjoint(s: &RefractionSettings, view: &ViewTargets, e: &Exit, d: &V3, gr
 
 /// Backward through one interface: from the gradients with respect to the outgoing ray (its
 /// origin `gp`, the hit point, and its direction `gd`) to the triangle's vertices (and, with
-/// vertex normals, the normals), added to `out` (and, if `index_gradient`, to the index); returns
-/// the gradients with respect to the incoming ray's origin and direction.
+/// vertex normals, the normals), added to `out` (and, given the object's `index`, to the
+/// derivative with respect to it); returns the gradients with respect to the incoming ray's
+/// origin and direction.
 fn interface_adjoint(
-    (mesh, index_gradient): (&MeshState, bool),
+    (mesh, index): (&MeshState, Option<f64>),
     it: &Interface,
     gp: &V3,
     gd: &V3,
@@ -728,8 +743,10 @@ fn interface_adjoint(
     let gout = normalize_adjoint(&it.snell.out, it.out_norm, gd);
     let (mut gdin, mut gn) = (V3::zeros(), V3::zeros());
     snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
-    if index_gradient {
-        out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, &gout) * it.deta_dior;
+    if let Some(ior) = index {
+        // ∂η/∂(object's index): η = n_air / n entering, n / n_air leaving.
+        let deta_dior = if it.entering { -1.0 } else { 1.0 } * it.snell.eta / ior;
+        out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, &gout) * deta_dior;
     }
     // The unit normal, outward: the face's or the interpolated one.
     let (outward, g_outward) = if it.entering {

@@ -8,6 +8,7 @@ pub mod folder;
 pub mod image;
 pub mod lock;
 pub mod paths;
+pub mod prefetch;
 pub mod progress;
 
 /// `v` as a user reads it in a message: plain for ordinary magnitudes, in exponent form beyond
