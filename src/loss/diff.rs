@@ -46,8 +46,7 @@ pub struct PlaneHit {
 /// The ray–plane hit; `None` when the ray runs parallel to the plane.
 #[inline]
 pub fn plane_hit(o: &Point3<f64>, d: &V3, tri: &[Point3<f64>; 3]) -> Option<PlaneHit> {
-    let n = (tri[1] - tri[0]).cross(&(tri[2] - tri[0]));
-    plane_hit_on(o, d, &tri[0], &n)
+    plane_hit_on(o, d, &tri[0], &crate::mesh::triangle_cross(tri))
 }
 
 /// [`plane_hit`] on the plane through `a` with the unnormalised normal `n` of its triangle.

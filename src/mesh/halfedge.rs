@@ -247,8 +247,7 @@ impl HalfEdgeMesh {
 
     /// (b − a) × (c − a) of face `f` (twice its area times its unit normal), mm².
     pub fn face_cross(&self, f: u32) -> Vector3<f64> {
-        let [a, b, c] = self.face_vertices(f).map(|v| self.pos[v as usize]);
-        (b - a).cross(&(c - a))
+        super::triangle_cross(&self.face_vertices(f).map(|v| self.pos[v as usize]))
     }
 
     /// Calls `visit` with every half-edge leaving `v`.

@@ -75,10 +75,9 @@ impl TriMesh {
         ]
     }
 
-    /// Area-weighted normal of face `f`: (b − a) × (c − a), length = 2 × area (mm²).
+    /// Area-weighted normal of face `f`: [`triangle_cross`] of its corners.
     pub fn face_cross(&self, f: usize) -> Vector3<f64> {
-        let [a, b, c] = self.corners(f);
-        (b - a).cross(&(c - a))
+        triangle_cross(&self.corners(f))
     }
 
     /// Area of face `f`, mm².
@@ -195,6 +194,11 @@ impl TriMesh {
             *p = Point3::from(p.coords * s + t);
         }
     }
+}
+
+/// Area-weighted normal of the triangle (a, b, c): (b − a) × (c − a), length = 2 × area (mm²).
+pub fn triangle_cross([a, b, c]: &[Point3<f64>; 3]) -> Vector3<f64> {
+    (b - a).cross(&(c - a))
 }
 
 #[cfg(test)]
