@@ -639,12 +639,16 @@ const PEBBLE_CONFIG: &str = "warmup_stages = 0\nstages = 2\nstart_edge = 0.06\nf
 
 /// The same scan at two camera resolutions (320×240 and 960×720: nine times the pixels)
 /// reconstructs alike: every term, weight and rule is in units at the object, and the rays an
-/// iteration traces follow the mesh, not the pixel count.
+/// iteration traces follow the mesh, not the pixel count. A quarter of the views is held out
+/// (6 of 24), so that the result-stage judge has the power to pass its second stage: at the
+/// default tenth (2 views, where its paired test asks t > 6.31) the 960×720 run kept the first
+/// stage (0.20–0.21 mm) over the second (0.10–0.11 mm) at 3 of seeds 1–6, the judge's draw
+/// rather than the camera's (0.27.3; with 6 views it passed the second at each of seeds 1–6).
 #[test]
 fn a_finer_camera_gives_the_same_result_from_as_many_rays() {
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("config.toml");
-    std::fs::write(&config, PEBBLE_CONFIG).unwrap();
+    std::fs::write(&config, format!("{PEBBLE_CONFIG}validation_share = 0.25\n")).unwrap();
     let run = |size: (u32, u32)| {
         let name = format!("{}x{}", size.0, size.1);
         let scan = dir.path().join(format!("scan-{name}"));
