@@ -208,10 +208,10 @@ struct Interface {
     interp_norm: f64,
     /// Unit normal facing the incident side.
     n: V3,
-    /// Snell's law here, its `out` normalised: the outgoing ray's unit direction.
+    /// Snell's law here: `out` is the outgoing ray's unit direction (unit by construction, for
+    /// a unit incoming direction and normal: |out|² = η² sin²θi + cos²θt = 1; not normalised
+    /// again, so neither is its adjoint taken).
     snell: Snell,
-    /// |snell.out| before normalisation.
-    out_norm: f64,
 }
 
 /// Why a pixel was dropped from the refraction term.
@@ -659,7 +659,7 @@ fn refract_at(
         }
     };
     let n = outward * sign;
-    let mut sn = snell(d, &n, eta).map_err(|e| match e {
+    let sn = snell(d, &n, eta).map_err(|e| match e {
         SnellFailure::Grazing => DropReason::Grazing,
         SnellFailure::Total => DropReason::TotalInternalReflection,
         SnellFailure::Critical => DropReason::NearCritical,
@@ -670,8 +670,6 @@ fn refract_at(
     if sn.cos_t < min_cos {
         return Err(DropReason::NearCritical);
     }
-    let out_norm = sn.out.norm();
-    sn.out /= out_norm;
     Ok(Interface {
         verts,
         dir_in: *d,
@@ -681,7 +679,6 @@ fn refract_at(
         bary,
         interp_norm,
         n,
-        out_norm,
         snell: sn,
     })
 }
@@ -739,14 +736,12 @@ fn interface_adjoint(
     gd: &V3,
     out: &mut PixelGradient,
 ) -> (V3, V3) {
-    // d_next = out / |out|.
-    let gout = normalize_adjoint(&it.snell.out, it.out_norm, gd);
     let (mut gdin, mut gn) = (V3::zeros(), V3::zeros());
-    snell_adjoint(&it.snell, &it.dir_in, &it.n, &gout, &mut gdin, &mut gn);
+    snell_adjoint(&it.snell, &it.dir_in, &it.n, gd, &mut gdin, &mut gn);
     if let Some(ior) = index {
         // ∂η/∂(object's index): η = n_air / n entering, n / n_air leaving.
         let deta_dior = if it.entering { -1.0 } else { 1.0 } * it.snell.eta / ior;
-        out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, &gout) * deta_dior;
+        out.ior += snell_eta_adjoint(&it.snell, &it.dir_in, &it.n, gd) * deta_dior;
     }
     // The unit normal, outward: the face's or the interpolated one.
     let (outward, g_outward) = if it.entering {
