@@ -856,8 +856,8 @@ fn pixels_per_chunk(offsets: &[(f64, f64)]) -> usize {
 
 /// Rays a chunk of the term traces and then differentiates on one thread: half of
 /// [`TRACE_CHUNK`], so that the chunk's paths, interfaces and gradient entries (about 0.8 MB
-/// through the pig) stay in a core's own cache (1 MB of L2 on the machine of `bench
-/// gradient`) from the forward pass to the backward one.
+/// through the pig in `bench gradient`) stay in a core's L2 cache (1 MB on a current server
+/// core) from the forward pass to the backward one.
 const LOSS_CHUNK: usize = TRACE_CHUNK / 2;
 
 /// What a thread reuses from chunk to chunk (and view to view, iteration to iteration), so
