@@ -6,7 +6,6 @@
 //! runs them; `make fuzz` runs 100,000).
 
 use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
 
 use glasscan::import::drt::import_drt;
 use glasscan::mesh::io::{read_mesh, write_mesh, write_mesh_as, MeshFormat};
@@ -136,28 +135,24 @@ fn fuzz(name: &str, sample: &[u8], read: impl Fn(&Path) -> bool) -> (usize, usiz
     (ok, refused)
 }
 
-/// A tiny decoded scan (2 views, 32×24), made once.
-fn scan() -> &'static (tempfile::TempDir, PathBuf) {
-    static SCAN: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
-    SCAN.get_or_init(|| {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("scan");
-        let o = SimulateOptions {
-            views: 2,
-            width: 32,
-            height: 24,
-            spp: 1,
-            decoded_only: true,
-            ..Default::default()
-        };
-        simulate(&icosphere(25.0, 2), &path, &o, |_| ()).unwrap();
-        (dir, path)
-    })
+/// A tiny decoded scan (2 views, 32×24) in a fresh temporary folder, and its path.
+fn scan() -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("scan");
+    let o = SimulateOptions {
+        views: 2,
+        width: 32,
+        height: 24,
+        spp: 1,
+        decoded_only: true,
+        ..Default::default()
+    };
+    simulate(&icosphere(25.0, 2), &path, &o, |_| ()).unwrap();
+    (dir, path)
 }
 
-/// Copies the scan's text files and decoded data into `to`.
-fn copy_scan(to: &Path) {
-    let from = &scan().1;
+/// Copies the text files and decoded data of the scan `from` into `to`.
+fn copy_scan(from: &Path, to: &Path) {
     std::fs::create_dir_all(to.join("decoded")).unwrap();
     for sub in ["", "decoded"] {
         for e in std::fs::read_dir(from.join(sub)).unwrap() {
@@ -188,10 +183,11 @@ fn mesh_readers_survive_mutated_files() {
 
 #[test]
 fn scan_and_calibration_readers_survive_mutated_files() {
+    let (_scan_dir, from) = scan();
     for name in ["scan.toml", "camera.yml", "screen.yml", "turntable.yml"] {
         let dir = tempfile::tempdir().unwrap();
         let to = dir.path().join("s");
-        copy_scan(&to);
+        copy_scan(&from, &to);
         let sample = std::fs::read(to.join(name)).unwrap();
         runner()
             .run(&edits(), |e| {
@@ -228,12 +224,13 @@ fn config_reader_survives_mutated_files() {
 
 #[test]
 fn decoded_form_readers_survive_mutated_files() {
-    let scan = Scan::open(&scan().1).unwrap();
+    let (_scan_dir, from) = scan();
+    let scan = Scan::open(&from).unwrap();
     let size = (scan.camera.width, scan.camera.height);
     for name in ["summary.json", "view_000_mask.png", "view_000_monitor.png"] {
         let dir = tempfile::tempdir().unwrap();
         let to = dir.path().join("s");
-        copy_scan(&to);
+        copy_scan(&from, &to);
         let sample = std::fs::read(to.join("decoded").join(name)).unwrap();
         runner()
             .run(&edits(), |e| {

@@ -160,13 +160,13 @@ fn rig_options(boards: CalibrationBoards) -> SimulateOptions {
 }
 
 /// A simulated rig with calibration images (one view of a ball), made once.
-fn rig() -> &'static (tempfile::TempDir, Scan) {
-    static RIG: OnceLock<(tempfile::TempDir, Scan)> = OnceLock::new();
+fn rig() -> &'static (PathBuf, Scan) {
+    static RIG: OnceLock<(PathBuf, Scan)> = OnceLock::new();
     RIG.get_or_init(|| {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = crate::common::shared_dir();
         let o = rig_options(CalibrationBoards::default());
-        simulate(&icosphere(60.0, 3), dir.path(), &o, |_| ()).unwrap();
-        let scan = Scan::open(dir.path()).unwrap();
+        simulate(&icosphere(60.0, 3), &dir, &o, |_| ()).unwrap();
+        let scan = Scan::open(&dir).unwrap();
         (dir, scan)
     })
 }
@@ -517,10 +517,10 @@ fn a_dark_or_missing_background_is_refused(truth: &Scan, t: &Path) {
 /// The rig of a user's first calibration: a 640×480 camera (f ≈ 634 px, k1 = −0.08), 20 images
 /// of a printed 25 mm board at 250–550 mm for the camera, and a 9×6 board of 10.9 mm squares
 /// standing on the turntable 550 mm away (squares about 12 px wide) at −40…40° every 10°.
-fn small_board_rig() -> &'static (tempfile::TempDir, Scan) {
-    static RIG: OnceLock<(tempfile::TempDir, Scan)> = OnceLock::new();
+fn small_board_rig() -> &'static (PathBuf, Scan) {
+    static RIG: OnceLock<(PathBuf, Scan)> = OnceLock::new();
     RIG.get_or_init(|| {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = crate::common::shared_dir();
         let ball = icosphere(60.0, 3);
         let (lo, hi) = ball.bbox().unwrap();
         let height = hi.y - lo.y;
@@ -543,8 +543,8 @@ fn small_board_rig() -> &'static (tempfile::TempDir, Scan) {
             },
             ..Default::default()
         };
-        simulate(&ball, dir.path(), &o, |_| ()).unwrap();
-        let scan = Scan::open(dir.path()).unwrap();
+        simulate(&ball, &dir, &o, |_| ()).unwrap();
+        let scan = Scan::open(&dir).unwrap();
         assert!(
             (scan.camera.fx / 634.0 - 1.0).abs() < 0.01,
             "{:?}",

@@ -36,6 +36,36 @@ pub fn run(cmd: &mut Command) -> Output {
         .expect("wait for a child")
 }
 
+/// Folders of fixtures several tests share, removed when this test binary exits.
+static SHARED_DIRS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// A fresh folder for a fixture that several tests share and a `static` holds (a `static` is
+/// never dropped, so a `TempDir` in one would stay behind in the system's temporary folder after
+/// every run): removed, with what it holds, when this test binary exits.
+pub fn shared_dir() -> PathBuf {
+    static REGISTER: std::sync::Once = std::sync::Once::new();
+    REGISTER.call_once(|| {
+        // SAFETY: `remove_shared_dirs` is an `extern "C"` function that does not unwind.
+        let registered = unsafe { libc::atexit(remove_shared_dirs) };
+        assert_eq!(registered, 0, "cannot register the shared folders' removal");
+    });
+    let dir = tempfile::tempdir().expect("a temporary folder").keep();
+    lock_shared_dirs().push(dir.clone());
+    dir
+}
+
+fn lock_shared_dirs() -> MutexGuard<'static, Vec<PathBuf>> {
+    SHARED_DIRS.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Removes the folders [`shared_dir`] made (at the test binary's exit).
+extern "C" fn remove_shared_dirs() {
+    let dirs = std::mem::take(&mut *lock_shared_dirs());
+    for dir in dirs {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}
+
 /// The glasscan binary, ready for arguments.
 pub fn glasscan_cmd() -> Command {
     Command::new(env!("CARGO_BIN_EXE_glasscan"))

@@ -3,7 +3,7 @@
 //! from; bad files are clear errors; hull and reconstruct run on an import.
 
 use crate::common::{glasscan, hdf5_open, killed_then_rerun, refused, snapshot};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Output;
 use std::sync::OnceLock;
 
@@ -18,13 +18,13 @@ use ndarray::{Array2, Array3, Array4};
 const VIEWS: usize = 72;
 
 /// A simulated 72-view scan (decoded-only, 64×48), made once.
-fn source() -> &'static (tempfile::TempDir, Scan) {
-    static SRC: OnceLock<(tempfile::TempDir, Scan)> = OnceLock::new();
+fn source() -> &'static (PathBuf, Scan) {
+    static SRC: OnceLock<(PathBuf, Scan)> = OnceLock::new();
     SRC.get_or_init(|| {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = crate::common::shared_dir();
         let sphere = ellipsoid(Vector3::new(30.0, 24.0, 20.0), 3);
-        crate::common::decoded_scan(dir.path(), &sphere, VIEWS, (64, 48));
-        let scan = Scan::open(dir.path()).unwrap();
+        crate::common::decoded_scan(&dir, &sphere, VIEWS, (64, 48));
+        let scan = Scan::open(&dir).unwrap();
         (dir, scan)
     })
 }

@@ -19,16 +19,13 @@ use opencv::core::{Mat, MatTraitConst, Vector, CV_16U};
 /// A 4-view 160×120 scan of a 25 mm sphere with its captures (no decode), made once; tests
 /// copy it before changing anything.
 fn captured() -> &'static Path {
-    static SCAN: OnceLock<tempfile::TempDir> = OnceLock::new();
+    static SCAN: OnceLock<PathBuf> = OnceLock::new();
     SCAN.get_or_init(|| {
-        let dir = tempfile::tempdir().unwrap();
+        let path = crate::common::shared_dir().join("S");
         let o = captured_options();
-        simulate(&icosphere(25.0, 3), &dir.path().join("S"), &o, |_| ()).unwrap();
-        dir
+        simulate(&icosphere(25.0, 3), &path, &o, |_| ()).unwrap();
+        path
     })
-    .path()
-    .join("S")
-    .leak()
 }
 
 /// The simulation of [`captured`].
