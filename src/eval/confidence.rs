@@ -18,7 +18,7 @@ pub struct ErrorByConfidence {
 }
 
 /// The error of `result`'s vertices against `reference` (its scene) by quarters of the area
-/// ordered by `quality` (one value per vertex; ties broken by vertex order).
+/// ordered by `quality` (one value per vertex; vertices of equal quality as one group).
 pub fn error_by_confidence(
     result: &TriMesh,
     quality: &[f64],
@@ -33,18 +33,31 @@ pub fn error_by_confidence(
 }
 
 /// The area-weighted mean of `errors` in each quarter of the total of `areas`, vertices taken
-/// in increasing `quality`; a vertex straddling a boundary counts in the quarter it starts in.
+/// in increasing `quality`. Vertices of equal quality cannot be told apart, so they count as
+/// one group at the group's mean error, spread over the quarters it spans by area (as a vertex
+/// that straddles a boundary is); the result does not depend on the vertices' order.
 fn by_quarters(quality: &[f64], areas: &[f64], errors: &[f64]) -> ErrorByConfidence {
     let mut order: Vec<usize> = (0..quality.len()).collect();
-    order.sort_by(|&a, &b| quality[a].total_cmp(&quality[b]).then(a.cmp(&b)));
+    order.sort_by(|&a, &b| quality[a].total_cmp(&quality[b]));
     let total: f64 = areas.iter().sum::<f64>().max(f64::MIN_POSITIVE);
     let (mut sum, mut weight) = ([0.0; 4], [0.0; 4]);
     let mut seen = 0.0;
-    for v in order {
-        let q = ((4.0 * seen / total) as usize).min(3);
-        sum[q] += errors[v] * areas[v];
-        weight[q] += areas[v];
-        seen += areas[v];
+    for group in order.chunk_by(|&a, &b| quality[a] == quality[b]) {
+        let area: f64 = group.iter().map(|&v| areas[v]).sum();
+        if area <= 0.0 {
+            continue;
+        }
+        let mean = group.iter().map(|&v| errors[v] * areas[v]).sum::<f64>() / area;
+        for q in 0..4 {
+            let (lo, hi) = (q as f64 * total / 4.0, (q + 1) as f64 * total / 4.0);
+            let hi = if q == 3 { f64::INFINITY } else { hi };
+            let part = (seen + area).min(hi) - seen.max(lo);
+            if part > 0.0 {
+                sum[q] += mean * part;
+                weight[q] += part;
+            }
+        }
+        seen += area;
     }
     let quartiles_mm: [f64; 4] = std::array::from_fn(|q| {
         if weight[q] > 0.0 {
@@ -79,9 +92,15 @@ mod tests {
             assert!((got - want).abs() < 1e-12, "{:?}", r.quartiles_mm);
         }
         assert!((r.least_over_most.unwrap() - want[0] / want[3]).abs() < 1e-12);
-        // One vertex holding most of the area fills the quarters it starts in.
+        // One vertex holding most of the area fills the quarters it spans.
         let r = by_quarters(&[0.0, 1.0], &[3.0, 1.0], &[2.0, 1.0]);
-        assert_eq!(r.quartiles_mm, [2.0, 0.0, 0.0, 1.0]);
+        assert_eq!(r.quartiles_mm, [2.0, 2.0, 2.0, 1.0]);
+        // Vertices of equal quality count at their mean error, in whatever order they come.
+        let (quality, areas) = ([0.0, 0.0, 0.0, 1.0], [1.0; 4]);
+        for errors in [[3.0, 0.0, 0.0, 1.0], [0.0, 0.0, 3.0, 1.0]] {
+            let r = by_quarters(&quality, &areas, &errors);
+            assert_eq!(r.quartiles_mm, [1.0, 1.0, 1.0, 1.0], "{errors:?}");
+        }
         // No error at all: no ratio.
         let r = by_quarters(&[0.0, 1.0], &[1.0, 1.0], &[0.0, 0.0]);
         assert_eq!(r.least_over_most, None);
