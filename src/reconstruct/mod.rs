@@ -289,7 +289,7 @@ fn continue_run(
 }
 
 #[cfg(test)]
-pub(crate) mod tests {
+mod tests {
     use super::*;
     use config::Preset;
 
@@ -339,7 +339,7 @@ pub(crate) mod tests {
 
     /// Keeps the notes of a run.
     #[derive(Default)]
-    pub(crate) struct Notes(pub(crate) std::sync::Mutex<Vec<String>>);
+    struct Notes(std::sync::Mutex<Vec<String>>);
 
     impl Progress for Notes {
         fn stage_start(&self, _: usize, _: usize, _: f64, _: usize, _: usize) {}

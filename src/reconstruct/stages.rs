@@ -13,7 +13,7 @@ use crate::mesh::validate::{validate, Defect};
 use crate::mesh::TriMesh;
 use crate::remesh::{remesh, AdaptiveSizing, RemeshOptions};
 use crate::trace::path::MeshSurface;
-use crate::trace::{BuildMode, Device, Scene};
+use crate::trace::BuildMode;
 use anyhow::{bail, Context, Result};
 use nalgebra::Point3;
 use rand::SeedableRng;
@@ -142,7 +142,7 @@ pub(super) fn run_next_stage(
         opts.edge_bound_mm = data_edge_bounds((inputs, ior), split, (mesh, edge_mm), &phase)
             .with_context(|| format!("stage {s}: measuring where the data pulls"))?;
     }
-    let mut mesh = remesh_keeping_parts(mesh, opts, (s, edge_mm), progress)?;
+    let mut mesh = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
     let seconds_remesh = t0.elapsed().as_secs_f64();
     let stages = checkpoint.settings.total_stages();
     progress.stage_start(s, stages, edge_mm, mesh.faces.len(), phase.iterations);
@@ -182,73 +182,6 @@ pub(super) fn run_next_stage(
     checkpoint.stages.push(report);
     checkpoint.stages_done += 1;
     Ok(mesh)
-}
-
-/// A stage's remesh has lost a part of its start mesh (a thin ear or fin that edges this long
-/// cannot hold, which the remesher's collapses shrink away) where a start vertex lies farther
-/// than this many of the stage's edges from it; an isotropic remesh that can follow the surface
-/// keeps its chords within a fraction of an edge.
-pub const LOST_PART_EDGES: f64 = 2.0;
-
-/// How many times a stage remeshes again, each time with edges half as long as the last at the
-/// parts still lost.
-const LOST_PART_RETRIES: i32 = 3;
-
-/// Remeshes `mesh` (stage `s`'s start) with `opts` (edge `edge_mm`); where the result has lost a
-/// part of it ([`LOST_PART_EDGES`]), remeshes again with the edges there bounded to half, a
-/// quarter, an eighth of `edge_mm`. If a part is still lost, the stage starts from `mesh`
-/// itself, unremeshed.
-fn remesh_keeping_parts(
-    mesh: &TriMesh,
-    mut opts: RemeshOptions,
-    (s, edge_mm): (usize, f64),
-    progress: &dyn Progress,
-) -> Result<TriMesh> {
-    let limit = LOST_PART_EDGES * edge_mm;
-    for retry in 0..=LOST_PART_RETRIES {
-        let out = remesh(mesh, &opts).with_context(|| format!("stage {s}: remeshing"))?;
-        let far = distances_to(&out, &mesh.positions)
-            .with_context(|| format!("stage {s}: checking the remesh"))?;
-        let lost: Vec<usize> = (0..far.len())
-            .filter(|&v| far[v] > limit || far[v].is_nan())
-            .collect();
-        if lost.is_empty() {
-            return Ok(out);
-        }
-        let worst = lost.iter().map(|&v| far[v]).fold(0.0, f64::max);
-        if retry == LOST_PART_RETRIES {
-            progress.note(&format!(
-                "stage {}: remeshing still loses a part ({} vertices up to {worst:.1} mm away): the stage starts from the last stage's mesh",
-                s + 1,
-                lost.len()
-            ));
-            break;
-        }
-        let short = edge_mm / f64::powi(2.0, retry + 1);
-        let n = mesh.positions.len();
-        let bound = opts
-            .edge_bound_mm
-            .get_or_insert_with(|| vec![f64::INFINITY; n]);
-        for &v in &lost {
-            bound[v] = bound[v].min(short);
-        }
-        progress.note(&format!(
-            "stage {}: the remesh at {edge_mm:.2} mm edges lost a part ({} vertices up to {worst:.1} mm away): again with {short:.2} mm edges there",
-            s + 1,
-            lost.len()
-        ));
-    }
-    Ok(mesh.clone())
-}
-
-/// The distance (mm) from each of `points` to the surface `mesh`.
-fn distances_to(mesh: &TriMesh, points: &[Point3<f64>]) -> Result<Vec<f64>> {
-    let scene = Scene::new(&Device::new()?, mesh, BuildMode::Static)?;
-    Ok(scene
-        .closest_points(points)?
-        .iter()
-        .map(|c| c.dist)
-        .collect())
 }
 
 /// What a stage runs on: the run's inputs or, after the warm-up of a run with `blur_correction`
@@ -530,58 +463,6 @@ pub(super) fn check_stage_mesh(mesh: &TriMesh, s: usize) -> Result<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A 15 mm ball with an ear: a flat ellipsoid 1.6 mm thick, 12 mm wide and 20 mm tall
-    /// standing on it (marching cubes every 0.4 mm).
-    fn ball_with_an_ear() -> TriMesh {
-        use nalgebra::Vector3;
-        let inside = |p: Point3<f64>, c: Point3<f64>, r: Vector3<f64>| {
-            (1.0 - (p - c).component_div(&r).norm()) * r.min()
-        };
-        let field = |p: Point3<f64>| {
-            let ball = inside(p, Point3::origin(), Vector3::new(15.0, 15.0, 15.0));
-            let ear = inside(p, Point3::new(0.0, 18.0, 0.0), Vector3::new(6.0, 10.0, 0.8));
-            ball.max(ear)
-        };
-        let (lo, hi) = (
-            Point3::new(-17.0, -17.0, -17.0),
-            Point3::new(17.0, 30.0, 17.0),
-        );
-        crate::mesh::shapes::implicit_surface(field, lo, hi, 0.4)
-    }
-
-    /// Remeshed uniformly at 4 mm edges, the ear's tip (28 mm up) is collapsed away, more than
-    /// [`LOST_PART_EDGES`] edges from the result; a stage's remesh notes the loss, remeshes the
-    /// ear with shorter edges and keeps every vertex of the input within that distance.
-    #[test]
-    fn a_stage_remesh_keeps_a_thin_ear_the_stage_edge_would_lose() {
-        let mesh = ball_with_an_ear();
-        let edge_mm = 4.0;
-        let limit = LOST_PART_EDGES * edge_mm;
-        let furthest = |out: &TriMesh| {
-            (distances_to(out, &mesh.positions).unwrap().into_iter()).fold(0.0, f64::max)
-        };
-        let plain = remesh(&mesh, &RemeshOptions::uniform(edge_mm)).unwrap();
-        let lost = furthest(&plain);
-        assert!(lost > limit, "the plain remesh keeps the ear: {lost} mm");
-        let notes = crate::reconstruct::tests::Notes::default();
-        let kept =
-            remesh_keeping_parts(&mesh, RemeshOptions::uniform(edge_mm), (3, edge_mm), &notes)
-                .unwrap();
-        let notes = notes.0.into_inner().unwrap();
-        eprintln!(
-            "plain: {lost:.2} mm, kept: {:.2} mm; {notes:?}",
-            furthest(&kept)
-        );
-        assert!(furthest(&kept) <= limit, "{notes:?}");
-        assert!(notes.iter().any(|n| n.contains("lost a part")), "{notes:?}");
-        // Edges stay the stage's away from the ear: far fewer faces than the input's.
-        assert!(
-            kept.faces.len() * 4 < mesh.faces.len(),
-            "{}",
-            kept.faces.len()
-        );
-    }
 
     #[test]
     fn thin_parts_cap_the_warm_up_edge_only() {
