@@ -160,14 +160,13 @@ fn rig_options(boards: CalibrationBoards) -> SimulateOptions {
 }
 
 /// A simulated rig with calibration images (one view of a ball), made once.
-fn rig() -> &'static (PathBuf, Scan) {
-    static RIG: OnceLock<(PathBuf, Scan)> = OnceLock::new();
+fn rig() -> &'static Scan {
+    static RIG: OnceLock<Scan> = OnceLock::new();
     RIG.get_or_init(|| {
         let dir = crate::common::shared_dir();
         let o = rig_options(CalibrationBoards::default());
         simulate(&icosphere(60.0, 3), &dir, &o, |_| ()).unwrap();
-        let scan = Scan::open(&dir).unwrap();
-        (dir, scan)
+        Scan::open(&dir).unwrap()
     })
 }
 
@@ -185,7 +184,7 @@ fn square_mm(scan: &Scan, set: &str) -> f64 {
 #[test]
 fn the_true_rig_is_kept_beside_the_calibration_images() {
     use glasscan::rig::calib_io;
-    let (_dir, truth) = rig();
+    let truth = rig();
     let dir = truth.dir.join("calibration/truth");
     let cam = calib_io::read_camera(&dir.join("camera.yml")).unwrap();
     assert_eq!(
@@ -203,7 +202,7 @@ fn the_true_rig_is_kept_beside_the_calibration_images() {
 /// the size the rig would choose (the one `rig()` got): the camera's board, then the turntable's.
 #[test]
 fn a_board_too_large_for_the_rig_is_refused_with_the_rigs_size() {
-    let (_dir, truth) = rig();
+    let truth = rig();
     for (camera, turntable, set) in [
         (Some(1000.0), None, "camera"),
         (None, Some(300.0), "turntable"),
@@ -225,7 +224,7 @@ fn a_board_too_large_for_the_rig_is_refused_with_the_rigs_size() {
 
 #[test]
 fn simulated_camera_calibrates_to_its_truth() {
-    let (_dir, truth) = rig();
+    let truth = rig();
     let board = Board {
         cols: 9,
         rows: 6,
@@ -256,7 +255,7 @@ fn simulated_camera_calibrates_to_its_truth() {
 
 #[test]
 fn simulated_monitor_pose_matches_its_truth() {
-    let (_dir, truth) = rig();
+    let truth = rig();
     let code = truth.graycode();
     let cap = decode_captures(
         &truth.background_dir(),
@@ -375,7 +374,7 @@ fn monitor_pose_from_partial_decodes_at_large_footprints() {
 
 #[test]
 fn simulated_turntable_axis_matches_its_truth() {
-    let (_dir, truth) = rig();
+    let truth = rig();
     let board = Board {
         cols: 9,
         rows: 6,
@@ -407,7 +406,7 @@ fn simulated_turntable_axis_matches_its_truth() {
 
 #[test]
 fn bad_calibration_input_gives_clear_errors() {
-    let (_dir, truth) = rig();
+    let truth = rig();
     let sq = square_mm(truth, "camera").to_string();
     let sq_turntable = square_mm(truth, "turntable").to_string();
     let tmp = tempfile::tempdir().unwrap();
@@ -517,8 +516,8 @@ fn a_dark_or_missing_background_is_refused(truth: &Scan, t: &Path) {
 /// The rig of a user's first calibration: a 640×480 camera (f ≈ 634 px, k1 = −0.08), 20 images
 /// of a printed 25 mm board at 250–550 mm for the camera, and a 9×6 board of 10.9 mm squares
 /// standing on the turntable 550 mm away (squares about 12 px wide) at −40…40° every 10°.
-fn small_board_rig() -> &'static (PathBuf, Scan) {
-    static RIG: OnceLock<(PathBuf, Scan)> = OnceLock::new();
+fn small_board_rig() -> &'static Scan {
+    static RIG: OnceLock<Scan> = OnceLock::new();
     RIG.get_or_init(|| {
         let dir = crate::common::shared_dir();
         let ball = icosphere(60.0, 3);
@@ -550,7 +549,7 @@ fn small_board_rig() -> &'static (PathBuf, Scan) {
             "{:?}",
             scan.camera
         );
-        (dir, scan)
+        scan
     })
 }
 
@@ -626,7 +625,7 @@ fn axis_errors(
 
 #[test]
 fn small_turntable_board_uses_every_image_and_fits_the_axis() {
-    let (_dir, truth) = small_board_rig();
+    let truth = small_board_rig();
     let board = |square_mm| Board {
         cols: 9,
         rows: 6,
@@ -697,7 +696,7 @@ fn small_turntable_board_uses_every_image_and_fits_the_axis() {
 /// frame does not flip between images.
 #[test]
 fn corner_order_follows_the_board_not_the_image() {
-    let (_dir, truth) = small_board_rig();
+    let truth = small_board_rig();
     let board = Board {
         cols: 9,
         rows: 6,
@@ -718,7 +717,7 @@ fn corner_order_follows_the_board_not_the_image() {
 
 #[test]
 fn turntable_fits_with_wrong_square_or_shuffled_angles_are_refused() {
-    let (_dir, truth) = small_board_rig();
+    let truth = small_board_rig();
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("tt.yml");
     let images = truth.dir.join("calibration/turntable/*.png");

@@ -3,7 +3,7 @@
 //! from; bad files are clear errors; hull and reconstruct run on an import.
 
 use crate::common::{glasscan, hdf5_open, killed_then_rerun, refused, snapshot};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Output;
 use std::sync::OnceLock;
 
@@ -18,14 +18,13 @@ use ndarray::{Array2, Array3, Array4};
 const VIEWS: usize = 72;
 
 /// A simulated 72-view scan (decoded-only, 64×48), made once.
-fn source() -> &'static (PathBuf, Scan) {
-    static SRC: OnceLock<(PathBuf, Scan)> = OnceLock::new();
+fn source() -> &'static Scan {
+    static SRC: OnceLock<Scan> = OnceLock::new();
     SRC.get_or_init(|| {
         let dir = crate::common::shared_dir();
         let sphere = ellipsoid(Vector3::new(30.0, 24.0, 20.0), 3);
         crate::common::decoded_scan(&dir, &sphere, VIEWS, (64, 48));
-        let scan = Scan::open(&dir).unwrap();
-        (dir, scan)
+        Scan::open(&dir).unwrap()
     })
 }
 
@@ -251,7 +250,7 @@ fn import(file: &Path, out: &Path, extra: &[&str]) -> Output {
 
 #[test]
 fn both_layouts_import_to_the_sources_inputs() {
-    let (_d, src) = source();
+    let src = source();
     let tmp = tempfile::tempdir().unwrap();
     for (name, layout) in [
         ("pointgrey", POINT_GREY),
@@ -287,7 +286,7 @@ fn both_layouts_import_to_the_sources_inputs() {
 
 #[test]
 fn invalid_rows_are_left_out_and_the_camera_can_be_forced() {
-    let (_d, src) = source();
+    let src = source();
     let tmp = tempfile::tempdir().unwrap();
     let file = tmp.path().join("f.h5");
     let zeroed = export_drt(
@@ -308,7 +307,7 @@ fn invalid_rows_are_left_out_and_the_camera_can_be_forced() {
 
 #[test]
 fn hull_and_reconstruct_run_on_an_import() {
-    let (_d, src) = source();
+    let src = source();
     let tmp = tempfile::tempdir().unwrap();
     let file = tmp.path().join("f.h5");
     export_drt(src, &file, POINT_GREY);
@@ -347,7 +346,7 @@ fn hull_and_reconstruct_run_on_an_import() {
 
 #[test]
 fn bad_files_name_the_key_and_shape() {
-    let (_d, src) = source();
+    let src = source();
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("s");
     for (layout, needle) in [
@@ -415,7 +414,7 @@ fn bad_files_name_the_key_and_shape() {
 /// non-empty folder is refused without --force.
 #[test]
 fn a_failed_import_leaves_the_previous_scan_as_it_was() {
-    let (_d, src) = source();
+    let src = source();
     let tmp = tempfile::tempdir().unwrap();
     let good = tmp.path().join("good.h5");
     export_drt(src, &good, POINT_GREY);
@@ -493,7 +492,7 @@ fn a_declared_size_beyond_the_memory_limit_is_refused() {
 /// and no temporary folder or lock is left beside the scan.
 #[test]
 fn an_import_killed_anywhere_is_put_right_by_the_next() {
-    let (_d, src) = source();
+    let src = source();
     let tmp = tempfile::tempdir().unwrap();
     let file = tmp.path().join("drt.h5");
     export_drt(src, &file, POINT_GREY);
